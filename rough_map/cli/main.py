@@ -1,0 +1,66 @@
+"""Entry point of the ``rough-map`` command."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from rough_map import __version__
+from rough_map.errors import RoughMapError
+
+# One module per command, in the order they appear in ``rough-map --help``.
+COMMAND_MODULES = [
+    "rough_map.cli.demo",
+    "rough_map.cli.features",
+]
+
+log = logging.getLogger("rough_map")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="rough-map",
+        description="Terrain roughness, terrain class and semantic maps from point clouds.",
+    )
+    parser.add_argument("--version", action="version", version=f"rough-map {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
+    parser.add_argument("-q", "--quiet", action="store_true", help="only errors on stderr")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(sub)
+    return parser
+
+
+def _configure_logging(verbose: int, quiet: bool) -> None:
+    level = logging.ERROR if quiet else (logging.DEBUG if verbose > 1 else
+                                         logging.INFO if verbose == 1 else logging.WARNING)
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger("rough_map")
+    root.handlers[:] = [handler]
+    root.setLevel(level)
+    root.propagate = False
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help(sys.stderr)
+        return 2
+    _configure_logging(args.verbose, args.quiet)
+    args.progress = not args.quiet and sys.stderr.isatty()
+    try:
+        return int(args.func(args) or 0)
+    except RoughMapError as exc:
+        print(f"rough-map {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("rough-map: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

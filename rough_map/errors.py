@@ -1,0 +1,54 @@
+"""The one error hierarchy of rough_map.
+
+Every error raised on purpose by the library is a :class:`RoughMapError`. Subclasses also
+inherit the builtin they resemble, so ``except ValueError`` keeps working for callers that
+do not know rough_map.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class RoughMapError(Exception):
+    """Root of all rough_map errors."""
+
+
+class InputError(RoughMapError, ValueError):
+    """An argument or an array has the wrong value, shape, units or content."""
+
+
+class PatchError(InputError):
+    """A patch cannot be analysed (too few points, too many gaps, ...)."""
+
+
+class FileFormatError(RoughMapError, ValueError):
+    """A file could not be read: unknown type, truncated, wrong fields.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file concerned.
+    message : str
+        What is wrong.
+    field : str, optional
+        The field, column, topic or key concerned.
+    """
+
+    def __init__(self, path: str | Path, message: str, field: str | None = None) -> None:
+        self.path = Path(path)
+        self.field = field
+        where = f"{path}" + (f" [{field}]" if field else "")
+        super().__init__(f"{where}: {message}")
+
+
+class SchemaError(FileFormatError):
+    """A traverse or configuration file does not follow its schema."""
+
+
+class ModelError(RoughMapError, ValueError):
+    """A model file is missing, foreign, tampered with, or does not fit the data."""
+
+
+class NotFittedError(RoughMapError, AttributeError):
+    """An estimator was used before ``fit``."""
