@@ -5,16 +5,21 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import pkgutil
 import sys
 
 from rough_map import __version__
 from rough_map.errors import RoughMapError
 
-# One module per command, in the order they appear in ``rough-map --help``.
-COMMAND_MODULES = [
-    "rough_map.cli.demo",
-    "rough_map.cli.features",
-]
+# Every module of this package that defines ``register`` is a command.
+_NOT_COMMANDS = {"main", "_common"}
+
+
+def _command_modules() -> list[str]:
+    import rough_map.cli as pkg
+
+    names = sorted(m.name for m in pkgutil.iter_modules(pkg.__path__))
+    return [f"rough_map.cli.{n}" for n in names if n not in _NOT_COMMANDS]
 
 log = logging.getLogger("rough_map")
 
@@ -28,8 +33,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
     parser.add_argument("-q", "--quiet", action="store_true", help="only errors on stderr")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in COMMAND_MODULES:
-        importlib.import_module(name).register(sub)
+    for name in _command_modules():
+        module = importlib.import_module(name)
+        if hasattr(module, "register"):
+            module.register(sub)
     return parser
 
 
