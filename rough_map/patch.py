@@ -15,6 +15,7 @@ optional.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass
@@ -111,6 +112,8 @@ class GriddedPatch:
     noise_psd : float
         The floor that this noise puts on the PSD of the gridded profiles, in m^3/rad:
         ``point_noise^2 * mean(1 / counts) * B / pi``.
+    level_angle : float
+        Tilt in rad of the patch plane that levelling removed (0 if none).
     """
 
     heights: np.ndarray
@@ -119,6 +122,7 @@ class GriddedPatch:
     n_points: int
     point_noise: float
     noise_psd: float
+    level_angle: float = 0.0
 
     @property
     def fill_fraction(self) -> float:
@@ -188,10 +192,27 @@ def _check_angle(name: str, value: float) -> float:
     return value
 
 
-def _rotate(q: np.ndarray, rot: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Rows of ``rot @ q.T`` as three columns (faster than a matmul with K = 3)."""
+def _rotate(
+    q: np.ndarray, rot: np.ndarray, offset: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows of ``rot @ q.T + offset`` as three columns (faster than a matmul with K = 3)."""
     x, y, z = q[:, 0], q[:, 1], q[:, 2]
-    return tuple(rot[i, 0] * x + rot[i, 1] * y + rot[i, 2] * z for i in range(3))
+    t = np.zeros(3) if offset is None else offset
+    return tuple(rot[i, 0] * x + rot[i, 1] * y + rot[i, 2] * z + t[i] for i in range(3))
+
+
+def levelling_rotation(normal: np.ndarray) -> np.ndarray:
+    """The smallest rotation that turns ``normal`` into +z (no yaw is introduced)."""
+    n = np.asarray(normal, dtype=float)
+    n = n / np.linalg.norm(n)
+    axis = np.cross(n, [0.0, 0.0, 1.0])
+    s = np.linalg.norm(axis)
+    c = float(n[2])
+    if s < 1e-15:
+        return np.eye(3)
+    k = axis / s
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + s * kx + (1 - c) * kx @ kx
 
 
 def compensate_tilt(points: np.ndarray, roll: float, pitch: float) -> np.ndarray:
@@ -221,8 +242,18 @@ def grid_points(
     estimate_noise: bool = True,
     roll: float | None = None,
     pitch: float | None = None,
+    level: bool = True,
+    level_threshold: float = math.radians(1.0),
 ) -> GriddedPatch:
     """Cut the patch of interest out of a cloud and grid it (mean z per cell).
+
+    With ``level`` (the default) the patch is levelled on its own least-squares plane:
+    if that plane is tilted by more than ``level_threshold`` rad, the cloud is rotated
+    about the patch centre so that the plane is horizontal, and gridded again. This is the
+    tilt compensation a rover without an IMU can do: viewing a surface from a tilted frame
+    shears it (x moves by about -pitch * z), which adds a little high-wavenumber power and
+    lowers R by several per cent at 4 degrees; levelling removes it. It also measures a
+    sloping patch along its surface, as profilometers do.
 
     Parameters
     ----------
@@ -237,6 +268,10 @@ def grid_points(
         Estimate the point noise and its PSD floor from the scatter within cells.
     roll, pitch : float, optional
         Vehicle tilt in rad: compensate it (paper Eq. 11) on the fly, chunk by chunk.
+    level : bool
+        Level the patch on its own plane (see above).
+    level_threshold : float
+        Smallest plane tilt in rad that triggers levelling.
 
     Returns
     -------
@@ -248,6 +283,49 @@ def grid_points(
     if roll is not None or pitch is not None:
         rot = rotation_matrix(_check_angle("roll", roll or 0.0),
                               _check_angle("pitch", pitch or 0.0))
+    angle = 0.0
+    offset = None
+    if level:
+        normal, centre_z = _plane(pts, spec, rot)
+        if normal is not None:
+            angle = math.acos(min(1.0, float(normal[2])))
+        if angle > level_threshold:
+            lev = levelling_rotation(normal)
+            centre = np.array([spec.ahead, spec.lateral, centre_z])
+            rot = lev if rot is None else lev @ rot
+            offset = centre - lev @ centre  # rotate about the patch centre
+            log.debug("levelling the patch by %.2f deg", math.degrees(angle))
+        else:
+            angle = 0.0
+    grid = _grid(pts, spec, rot, offset, min_points, estimate_noise)
+    if angle:
+        grid = dataclasses.replace(grid, level_angle=angle)
+    return grid
+
+
+def _plane(
+    pts: np.ndarray, spec: PatchSpec, rot: np.ndarray | None, n_sample: int = 40_000
+) -> tuple[np.ndarray | None, float]:
+    """Least-squares plane of a subsample of the patch's points.
+
+    Returns the unit normal (z > 0) and the plane's z at the patch centre; (None, nan) if
+    too few points fall in the patch.
+    """
+    q = pts[:: max(1, len(pts) // n_sample)]
+    x, y, z = _rotate(q, rot) if rot is not None else (q[:, 0], q[:, 1], q[:, 2])
+    half = 0.5 * spec.n * spec.spacing
+    dx, dy = x - spec.ahead, y - spec.lateral
+    ok = (np.abs(dx) < half) & (np.abs(dy) < half) & np.isfinite(z)
+    if ok.sum() < 10:
+        return None, math.nan
+    a = np.column_stack([np.ones(int(ok.sum())), dx[ok], dy[ok]])
+    coef, *_ = np.linalg.lstsq(a, z[ok], rcond=None)
+    normal = np.array([-coef[1], -coef[2], 1.0])
+    return normal / np.linalg.norm(normal), float(coef[0])
+
+
+def _grid(pts, spec, rot, offset, min_points, estimate_noise) -> GriddedPatch:
+    """One pass over the points: cell counts, means, centroid correction, noise."""
     n = spec.n
     width = n + 2  # one border cell on each side collects everything outside
     inv = 1.0 / spec.spacing
@@ -263,19 +341,25 @@ def grid_points(
     cnt = np.zeros(width * width, dtype=np.intp)
     sz = np.zeros(width * width)
     szz = np.zeros(width * width)
+    su = np.zeros(width * width)  # sums of the in-cell offsets, for the centroids
+    sv = np.zeros(width * width)
     n_bad = 0
     for s in range(0, len(pts), _CHUNK):
         q = pts[s : s + _CHUNK]
-        x, y, z = _rotate(q, rot) if rot is not None else (q[:, 0], q[:, 1], q[:, 2])
+        x, y, z = _rotate(q, rot, offset) if rot is not None else (q[:, 0], q[:, 1], q[:, 2])
         u = np.multiply(x, inv)
         u -= cx
         np.fmin(np.fmax(u, 0.0, out=u), n + 1, out=u)  # NaN -> border cell
         v = np.multiply(y, inv)
         v -= cy
         np.fmin(np.fmax(v, 0.0, out=v), n + 1, out=v)
-        cell = v.astype(np.intp)
+        iu = u.astype(np.intp)
+        iv = v.astype(np.intp)
+        u -= iu
+        v -= iv
+        cell = iv
         cell *= width
-        cell += u.astype(np.intp)
+        cell += iu
         z = z - zref
         bad = ~np.isfinite(z)
         if bad.any():
@@ -284,6 +368,8 @@ def grid_points(
             z[bad] = 0.0
         cnt += np.bincount(cell, minlength=width * width)
         sz += np.bincount(cell, z, minlength=width * width)
+        su += np.bincount(cell, u, minlength=width * width)
+        sv += np.bincount(cell, v, minlength=width * width)
         if estimate_noise:
             z *= z
             szz += np.bincount(cell, z, minlength=width * width)
@@ -301,7 +387,12 @@ def grid_points(
         )
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = sz.reshape(width, width)[inner] / counts
-    heights = mean + zref
+        # The points of a cell do not average to its centre: refer each mean to the centre
+        # with the local gradient, so slopes do not turn point positions into height noise.
+        du = (su.reshape(width, width)[inner] / counts - 0.5) * spec.spacing
+        dv = (sv.reshape(width, width)[inner] / counts - 0.5) * spec.spacing
+        gy, gx = np.gradient(mean, spec.spacing)
+    heights = mean - np.nan_to_num(gx * du + gy * dv) + zref
     point_noise = noise_psd = math.nan
     if estimate_noise:
         point_noise, noise_psd = _noise(mean, counts, szz.reshape(width, width)[inner], spec)
@@ -334,6 +425,7 @@ def extract_patch(
     roll: float | None = None,
     pitch: float | None = None,
     min_points: int = 100,
+    level: bool = True,
 ) -> GriddedPatch:
     """Grid the patch of interest, compensating tilt first when roll or pitch is given.
 
@@ -347,5 +439,8 @@ def extract_patch(
         Vehicle tilt in rad (paper Eq. 11).
     min_points : int
         Fewest points inside the patch.
+    level : bool
+        Level the patch on its own plane (see :func:`grid_points`).
     """
-    return grid_points(points, spec, roll=roll, pitch=pitch, min_points=min_points)
+    return grid_points(points, spec, roll=roll, pitch=pitch, min_points=min_points,
+                       level=level)

@@ -244,7 +244,8 @@ def fill_gaps(
     hp = np.where(prev < 0, hq, hp)
     hq = np.where(nxt >= n, hp, hq)
     span = np.where((nxt < n) & (prev >= 0), (nxt - prev).astype(float), 1.0)
-    frac = np.where((nxt < n) & (prev >= 0), (cols - prev) / span, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        frac = np.where((nxt < n) & (prev >= 0), (cols - prev) / span, 0.0)
     filled = np.where(missing & keep[:, None], hp + frac * (hq - hp), h)
     return filled, keep
 
@@ -602,7 +603,12 @@ def patch_roughness(
     spacing = _check_spacing(spacing)
     if not (math.isfinite(omega0) and omega0 > 0):
         raise InputError(f"omega0 must be a positive wavenumber in rad/m, got {omega0!r}")
-    arr = np.asarray(heights, dtype=float)
+    try:
+        arr = np.asarray(heights, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError("heights must be a numeric array of elevations in m") from None
+    if arr.size == 0 and arr.ndim != 3:
+        raise InputError(f"heights is empty (shape {arr.shape})")
     single = arr.ndim != 3
     if single:
         if arr.ndim == 1:
@@ -629,6 +635,8 @@ def patch_roughness(
         arr = filled[keep][None]
         if n_dropped:
             log.debug("dropped %d of %d profiles for gaps", n_dropped, m)
+    if arr.shape[1] < min_profiles and n_dropped == 0:
+        raise PatchError(f"the patch has {m} profiles, need at least {min_profiles}")
     if arr.shape[1] < min_profiles:
         raise PatchError(
             f"only {arr.shape[1]} of {m} profiles are usable (need {min_profiles}); "

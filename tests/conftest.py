@@ -1,0 +1,21 @@
+import numpy as np
+import pytest
+
+from rough_map import terrain
+from rough_map.types import HeightField
+
+
+@pytest.fixture
+def dense_cloud():
+    """A dense (about 40 points per 8 mm cell) noisy cloud over gravel, vehicle frame."""
+
+    def make(name="gravel", n_points=500_000, noise=0.0005, seed=0, spacing=0.004):
+        h = terrain.generate(name, (300, 400), spacing, seed=seed)
+        hf = HeightField(h, spacing, origin=(0.3, -0.6))
+        rng = np.random.default_rng(seed + 1)
+        x = rng.uniform(0.52, 1.48, n_points)
+        y = rng.uniform(-0.48, 0.48, n_points)
+        z = hf.sample(x, y) + rng.normal(0, noise, n_points)
+        return np.column_stack([x, y, z])
+
+    return make

@@ -1,0 +1,227 @@
+"""The estimator of section 4: known answers, the synthesis round trip, gaps, bad input."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy import signal
+
+from rough_map import iso8608, psd
+from rough_map.errors import InputError, PatchError
+
+B = 0.008
+N = 112
+
+
+def test_matches_scipy_welch():
+    rng = np.random.default_rng(1)
+    h = rng.standard_normal((7, N)) * 1e-3 + np.linspace(0, 0.05, N)
+    omega, p = psd.profile_psd(h, B)
+    f, ref = signal.welch(signal.detrend(h, axis=1), fs=1 / B, window="hann", nperseg=N,
+                          detrend=False)
+    np.testing.assert_allclose(omega, 2 * np.pi * f[1:])
+    np.testing.assert_allclose(p, ref[:, 1:] / (2 * np.pi), rtol=2e-4)
+
+
+def test_sinusoid_peak_has_its_power():
+    k, amp = 10, 2e-3
+    x = np.arange(N) * B
+    omega_k = 2 * np.pi * k / (N * B)
+    h = amp * np.sin(omega_k * x + 0.3)
+    omega, p = psd.profile_psd(h, B)
+    peak = int(np.argmax(p))
+    assert omega[peak] == pytest.approx(omega_k)
+    d_omega = omega[1] - omega[0]
+    power = p[peak - 1 : peak + 2].sum() * d_omega  # Hann spreads a tone over 3 ordinates
+    assert power == pytest.approx(amp**2 / 2, rel=0.02)
+
+
+def test_parseval_with_rectangular_window():
+    rng = np.random.default_rng(2)
+    h = np.cumsum(rng.standard_normal((5, N)), axis=1) * 1e-4
+    omega, p = psd.profile_psd(h, B, window="boxcar")
+    var = signal.detrend(h, axis=1).var(axis=1)
+    np.testing.assert_allclose(p.sum(axis=1) * (omega[1] - omega[0]), var, rtol=1e-4)
+
+
+CASES = [(c, w) for c in "BCDEFG" for w in (-2.0, -2.4, -2.6)]
+
+
+@pytest.mark.parametrize(("cls", "w"), CASES)
+def test_round_trip_surfaces(cls, w):
+    """Median over 20 patches cut from larger surfaces: ln R within 0.15, w within 0.05."""
+    phi0 = iso8608.PHI0[cls]
+    seed = 1000 * "BCDEFG".index(cls) + int(-10 * w)
+    patches = np.stack([
+        iso8608.synthesize_surface((4 * N, 2 * N), B, phi0, w, seed=seed + i)[:N, :N]
+        for i in range(20)
+    ])
+    est = psd.patch_roughness(patches, B)
+    assert abs(np.median([math.log(e.R / phi0) for e in est])) < 0.15
+    assert abs(np.median([e.w - w for e in est])) < 0.05
+
+
+@pytest.mark.parametrize("w", [-1.8, -2.2, -2.6, -3.0])
+@pytest.mark.parametrize("cls", ["A", "D", "H"])
+def test_round_trip_profiles(cls, w):
+    phi0 = iso8608.PHI0[cls]
+    h = np.stack([iso8608.synthesize_profile(N, B, phi0, w, n_profiles=N, seed=s)
+                  for s in range(10)])
+    est = psd.patch_roughness(h, B)
+    assert abs(np.median([math.log(e.R / phi0) for e in est])) < 0.1
+    assert abs(np.median([e.w - w for e in est])) < 0.04
+
+
+def test_paper_method_is_biased_low_by_about_gamma():
+    h = np.stack([iso8608.synthesize_profile(N, B, 64e-6, -2.0, n_profiles=N, seed=s)
+                  for s in range(10)])
+    paper = psd.patch_roughness(h, B, method="paper")
+    unbiased = psd.patch_roughness(h, B)
+    gap = np.median([math.log(u.R / p.R) for u, p in zip(unbiased, paper, strict=True)])
+    assert 0.35 < gap < 0.75  # exp(-gamma): 44 % low, plus the window/detrend offsets
+
+
+def test_single_and_batch_agree():
+    h = np.stack([iso8608.synthesize_surface((N, N), B, "E", -2.3, seed=s) for s in range(3)])
+    batch = psd.patch_roughness(h, B)
+    for one, patch in zip(batch, h, strict=True):
+        single = psd.patch_roughness(patch, B)
+        assert single.R == pytest.approx(one.R, rel=1e-9)
+        assert single.w == pytest.approx(one.w, rel=1e-9)
+
+
+def test_uncertainty_is_the_profile_spread():
+    h = iso8608.synthesize_surface((N, N), B, "E", -2.3, seed=5)
+    r = psd.patch_roughness(h, B)
+    assert r.n_profiles == N and r.profile_R.shape == (N,)
+    assert r.sigma_w == pytest.approx(np.std(r.profile_w, ddof=1))
+    assert r.sigma_R == pytest.approx(r.R * np.std(np.log(r.profile_R), ddof=1))
+    assert r.R == pytest.approx(math.exp(np.mean(np.log(r.profile_R))))
+    assert r.iso_class == iso8608.iso_class(r.R)
+    assert r.rms > 0 and r.omega[0] == pytest.approx(2 * math.pi / (N * B))
+
+
+def test_welch_segments_are_unbiased_too():
+    h = np.stack([iso8608.synthesize_profile(2 * N, B, 64e-6, -2.4, n_profiles=N, seed=s)
+                  for s in range(10)])
+    est = psd.patch_roughness(h, B, nperseg=N)
+    assert abs(np.median([math.log(e.R / 64e-6) for e in est])) < 0.15
+    assert abs(np.median([e.w + 2.4 for e in est])) < 0.06
+
+
+def test_cell_mean_gridding_is_corrected():
+    """Cell means of a fine surface: the box filter is undone by gridding='cell_mean'."""
+    fine = 0.001
+    lr, dw = [], []
+    for s in range(6):
+        f = iso8608.synthesize_surface((896, 1792), fine, 1e-4, -2.4, seed=s)
+        means = f.reshape(112, 8, 224, 8).mean(axis=(1, 3))[:, :112]
+        r = psd.patch_roughness(means, B, gridding="cell_mean")
+        plain = psd.patch_roughness(means, B)
+        lr.append(math.log(r.R / 1e-4))
+        dw.append(r.w + 2.4)
+        assert plain.w < r.w  # the box filter steepens the spectrum
+    assert abs(np.mean(lr)) < 0.35
+    assert abs(np.mean(dw)) < 0.08
+
+
+# --------------------------------------------------------------------------- noise
+
+
+def test_noise_floor_subtraction_moves_back_to_the_truth():
+    rng = np.random.default_rng(3)
+    phi0, w = iso8608.PHI0["B"], -2.0
+    clean = np.stack([iso8608.synthesize_surface((2 * N, 2 * N), B, phi0, w, seed=s)[:N, :N]
+                      for s in range(10)])
+    sigma = 1.0e-4  # noise of a cell mean, m
+    noisy = clean + rng.normal(0, sigma, clean.shape)
+    floor = sigma**2 * B / math.pi
+    raw = psd.patch_roughness(noisy, B)
+    fixed = psd.patch_roughness(noisy, B, noise_psd=floor, subtract_noise=True)
+    err_raw = abs(np.median([math.log(e.R / phi0) for e in raw]))
+    err_fixed = abs(np.median([math.log(e.R / phi0) for e in fixed]))
+    assert err_fixed < err_raw
+    assert err_fixed < 0.2
+    assert np.median([e.w for e in raw]) > np.median([e.w for e in fixed])  # noise flattens
+
+
+def test_subtract_noise_needs_a_floor():
+    h = iso8608.synthesize_surface((N, N), B, "C", seed=0)
+    with pytest.raises(InputError, match="noise_psd"):
+        psd.patch_roughness(h, B, subtract_noise=True)
+
+
+def test_noise_above_the_signal_everywhere_is_an_error():
+    h = iso8608.synthesize_surface((N, N), B, "A", seed=0)
+    with pytest.raises(PatchError, match="noise floor"):
+        psd.patch_roughness(h, B, noise_psd=1.0, subtract_noise=True)
+
+
+# --------------------------------------------------------------------------- gaps
+
+
+def test_short_gaps_are_filled_and_counted():
+    h = iso8608.synthesize_surface((N, N), B, "E", -2.4, seed=7)
+    ref = psd.patch_roughness(h, B)
+    holed = h.copy()
+    rng = np.random.default_rng(0)
+    holed[rng.random(h.shape) < 0.03] = np.nan  # scattered single cells
+    holed[5, 20:40] = np.nan  # a 160 mm gap: profile 5 is dropped
+    holed[9, :] = np.nan  # an empty profile
+    r = psd.patch_roughness(holed, B)
+    assert r.n_dropped == 2 and r.n_profiles == N - 2
+    assert math.log(r.R / ref.R) == pytest.approx(0, abs=0.15)
+    assert r.w == pytest.approx(ref.w, abs=0.05)
+
+
+def test_fill_gaps_interpolates_linearly():
+    h = np.array([[0.0, np.nan, 2.0, 3.0, np.nan, np.nan, 6.0, 7.0, np.nan]])
+    filled, keep = psd.fill_gaps(h, 0.01, max_gap=0.02, max_gap_fraction=0.5)
+    np.testing.assert_allclose(filled[0], [0, 1, 2, 3, 4, 5, 6, 7, 7])
+    assert keep.all()
+
+
+def test_all_nan_patch_raises():
+    with pytest.raises(PatchError, match="profiles are usable"):
+        psd.patch_roughness(np.full((N, N), np.nan), B)
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+@pytest.mark.parametrize(
+    ("heights", "spacing", "match"),
+    [
+        (np.zeros((0, 0)), B, "empty"),
+        (np.zeros((4, 4, 4, 4)), B, "2-D grid"),
+        (np.zeros((10, 4)), B, "at least 8 samples"),
+        (np.full((10, 16), np.inf), B, "infinite"),
+        (np.zeros((10, 16)), 0.0, "spacing"),
+        (np.zeros((10, 16)), -1.0, "spacing"),
+        (np.zeros((10, 16)), float("nan"), "spacing"),
+        (np.array([["a"] * 16] * 10), B, "numeric"),
+    ],
+)
+def test_bad_input(heights, spacing, match):
+    with pytest.raises(InputError, match=match):
+        psd.patch_roughness(heights, spacing)
+
+
+def test_bad_options():
+    h = np.zeros((10, 16))
+    with pytest.raises(InputError, match="method"):
+        psd.patch_roughness(h, B, method="magic")
+    with pytest.raises(InputError, match="gridding"):
+        psd.patch_roughness(h, B, gridding="nearest")
+    with pytest.raises(InputError, match="noverlap"):
+        psd.patch_roughness(np.random.default_rng(0).random((10, 64)), B, nperseg=16,
+                            noverlap=16)
+    with pytest.raises(PatchError, match="need at least 3"):
+        psd.patch_roughness(np.random.default_rng(0).random((2, 64)), B)
+
+
+def test_shipped_tables_are_up_to_date():
+    with np.load(psd._SHIPPED_TABLES) as data:
+        for g in psd.GRIDDINGS:
+            np.testing.assert_allclose(data[f"hann_112_{g}"],
+                                       psd._compute_leakage_table(112, "hann", g), atol=1e-9)
