@@ -58,11 +58,18 @@ class SurfaceSpec:
 SURFACES: dict[str, SurfaceSpec] = {
     "concrete": SurfaceSpec("concrete", PHI0["C"], -2.0, "smooth concrete pathway, ISO C"),
     "dirt_road": SurfaceSpec("dirt_road", PHI0["D"], -2.2, "well-beaten dirt road, ISO D"),
-    "gravel": SurfaceSpec("gravel", PHI0["E"], -2.4, "gravel-like surface with pebbles, ISO E",
-                          base_scale=0.75, base_w=-2.58),
+    "gravel": SurfaceSpec(
+        "gravel",
+        PHI0["E"],
+        -2.4,
+        "gravel-like surface with pebbles, ISO E",
+        base_scale=0.75,
+        base_w=-2.58,
+    ),
     "compact_soil": SurfaceSpec("compact_soil", 393e-6, -2.40, "compact agricultural soil"),
-    "ploughed_soil": SurfaceSpec("ploughed_soil", 1734e-6, -2.59, "ploughed vineyard soil",
-                                 base_scale=0.75, base_w=-2.55),
+    "ploughed_soil": SurfaceSpec(
+        "ploughed_soil", 1734e-6, -2.59, "ploughed vineyard soil", base_scale=0.75, base_w=-2.55
+    ),
 }
 
 ALIASES = {"compact": "compact_soil", "ploughed": "ploughed_soil", "dirt": "dirt_road"}
@@ -116,8 +123,9 @@ def generate(
     if not (math.isfinite(roughness_scale) and roughness_scale > 0):
         raise InputError(f"roughness_scale must be positive, got {roughness_scale!r}")
     w_base = spec.w if spec.base_w is None else spec.base_w
-    h = synthesize_surface(shape, spacing, spec.R * spec.base_scale * roughness_scale, w_base,
-                           seed=rng)
+    h = synthesize_surface(
+        shape, spacing, spec.R * spec.base_scale * roughness_scale, w_base, seed=rng
+    )
     if extras and spec.name in _EXTRAS:
         h = h + math.sqrt(roughness_scale) * _EXTRAS[spec.name](shape, spacing, rng)
     return h
@@ -190,11 +198,11 @@ def furrows(
 
 
 def ruts(shape: tuple[int, int], spacing: float, rng: np.random.Generator) -> np.ndarray:
-    """Two shallow wheel ruts along x, 1.3-1.6 m apart, 5-15 mm deep."""
+    """Two shallow wheel ruts along x, 1.4-1.7 m apart about the middle, 5-15 mm deep."""
     x, y = _grid(shape, spacing)
-    gauge = rng.uniform(1.3, 1.6)
+    gauge = rng.uniform(1.4, 1.7)
     depth = rng.uniform(0.005, 0.015)
-    centre = y.mean() + rng.uniform(-0.3, 0.3)
+    centre = y.mean() + rng.uniform(-0.05, 0.05)
     drift = 0.1 * np.sin(2 * np.pi * x / rng.uniform(8, 20) + rng.uniform(0, 6.3))
     out = np.zeros(shape)
     for side in (-0.5, 0.5):
@@ -256,7 +264,11 @@ def add_manhole(
 
 
 def add_pit(
-    h: np.ndarray, spacing: float, centre: tuple[float, float], *, radius: float = 0.15,
+    h: np.ndarray,
+    spacing: float,
+    centre: tuple[float, float],
+    *,
+    radius: float = 0.15,
     depth: float = 0.06,
 ) -> np.ndarray:
     """A bowl-shaped pit ``depth`` m deep at grid (x, y) m; returns a new array."""
@@ -265,7 +277,11 @@ def add_pit(
 
 
 def add_rock(
-    h: np.ndarray, spacing: float, centre: tuple[float, float], *, radius: float = 0.12,
+    h: np.ndarray,
+    spacing: float,
+    centre: tuple[float, float],
+    *,
+    radius: float = 0.12,
     height: float = 0.08,
 ) -> np.ndarray:
     """A rock (half-ellipsoid) ``height`` m high at grid (x, y) m; returns a new array."""

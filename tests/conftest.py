@@ -19,3 +19,14 @@ def dense_cloud():
         return np.column_stack([x, y, z])
 
     return make
+
+
+@pytest.fixture(autouse=True)
+def _restore_cli_logging():
+    """``rough_map.cli.main.main`` configures the 'rough_map' logger; undo it per test."""
+    import logging
+
+    logger = logging.getLogger("rough_map")
+    saved = logger.handlers[:], logger.level, logger.propagate
+    yield
+    logger.handlers[:], logger.level, logger.propagate = saved

@@ -16,29 +16,54 @@ from rough_map.patch import DEFAULT_AHEAD, DEFAULT_SIZE, DEFAULT_SPACING, PatchS
 def add_patch_args(parser: argparse.ArgumentParser) -> None:
     """--spacing/--size/--ahead/--lateral, all in metres."""
     g = parser.add_argument_group("patch of interest (vehicle frame, metres)")
-    g.add_argument("--spacing", type=float, default=DEFAULT_SPACING, metavar="M",
-                   help=f"grid step B in m (default {DEFAULT_SPACING})")
-    g.add_argument("--size", type=float, default=DEFAULT_SIZE, metavar="M",
-                   help=f"side of the square patch in m (default {DEFAULT_SIZE})")
-    g.add_argument("--ahead", type=float, default=DEFAULT_AHEAD, metavar="M",
-                   help=f"distance of the patch centre ahead of the vehicle in m "
-                        f"(default {DEFAULT_AHEAD})")
-    g.add_argument("--lateral", type=float, default=0.0, metavar="M",
-                   help="offset of the patch centre to the left in m (default 0)")
+    g.add_argument(
+        "--spacing",
+        type=float,
+        default=DEFAULT_SPACING,
+        metavar="M",
+        help=f"grid step B in m (default {DEFAULT_SPACING})",
+    )
+    g.add_argument(
+        "--size",
+        type=float,
+        default=DEFAULT_SIZE,
+        metavar="M",
+        help=f"side of the square patch in m (default {DEFAULT_SIZE})",
+    )
+    g.add_argument(
+        "--ahead",
+        type=float,
+        default=DEFAULT_AHEAD,
+        metavar="M",
+        help=f"distance of the patch centre ahead of the vehicle in m (default {DEFAULT_AHEAD})",
+    )
+    g.add_argument(
+        "--lateral",
+        type=float,
+        default=0.0,
+        metavar="M",
+        help="offset of the patch centre to the left in m (default 0)",
+    )
 
 
 def add_psd_args(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("estimator")
-    g.add_argument("--method", choices=("unbiased", "paper"), default="unbiased",
-                   help="'unbiased' corrects the log-periodogram bias (default); 'paper' is "
-                        "the paper's plain log-log fit (R about 44%% low)")
-    g.add_argument("--subtract-noise", action="store_true",
-                   help="subtract the noise floor estimated from the within-cell scatter")
+    g.add_argument(
+        "--method",
+        choices=("unbiased", "paper"),
+        default="unbiased",
+        help="'unbiased' corrects the log-periodogram bias (default); 'paper' is "
+        "the paper's plain log-log fit (R about 44%% low)",
+    )
+    g.add_argument(
+        "--keep-noise",
+        action="store_true",
+        help="do not subtract the noise floor estimated from the within-cell scatter",
+    )
 
 
 def patch_spec(args: argparse.Namespace) -> PatchSpec:
-    return PatchSpec(ahead=args.ahead, size=args.size, spacing=args.spacing,
-                     lateral=args.lateral)
+    return PatchSpec(ahead=args.ahead, size=args.size, spacing=args.spacing, lateral=args.lateral)
 
 
 def _jsonable(value: Any) -> Any:
@@ -65,8 +90,9 @@ def table(rows: list[list[str]], header: list[str] | None = None) -> str:
     """A plain aligned text table."""
     allrows = ([header] if header else []) + rows
     widths = [max(len(r[i]) for r in allrows) for i in range(len(allrows[0]))]
-    lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip()
-             for r in allrows]
+    lines = [
+        "  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip() for r in allrows
+    ]
     if header:
         lines.insert(1, "  ".join("-" * w for w in widths))
     return "\n".join(lines)

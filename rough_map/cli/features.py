@@ -23,16 +23,34 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("source", metavar="CLOUD|TRAVERSE_DIR", type=Path)
     add_patch_args(p)
-    p.add_argument("--roll", type=float, metavar="DEG",
-                   help="vehicle roll in degrees: compensate tilt (paper Eq. 11)")
-    p.add_argument("--pitch", type=float, metavar="DEG",
-                   help="vehicle pitch in degrees: compensate tilt (paper Eq. 11)")
+    p.add_argument(
+        "--roll",
+        type=float,
+        metavar="DEG",
+        help="vehicle roll in degrees: compensate tilt (paper Eq. 11)",
+    )
+    p.add_argument(
+        "--pitch",
+        type=float,
+        metavar="DEG",
+        help="vehicle pitch in degrees: compensate tilt (paper Eq. 11)",
+    )
     add_psd_args(p)
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
-    p.add_argument("--out", type=Path, metavar="FILE",
-                   help="for a traverse: features table (.csv, or .parquet with pyarrow)")
-    p.add_argument("--no-tilt", action="store_true",
-                   help="for a traverse: ignore the IMU roll/pitch of the frames")
+    p.add_argument(
+        "--out",
+        type=Path,
+        metavar="FILE",
+        help="for a traverse: features table (.csv, or .parquet with pyarrow)",
+    )
+    p.add_argument(
+        "--no-tilt",
+        action="store_true",
+        help="for a traverse: ignore the IMU roll/pitch of the frames",
+    )
+    p.add_argument("--points-from", choices=("auto", "cloud", "stereo"), default="auto",
+                   help="for a traverse: the frames' clouds, or their stereo pairs "
+                        "(auto: the cloud when there is one)")
     p.set_defaults(func=run)
 
 
@@ -54,12 +72,21 @@ def run_cloud(args: argparse.Namespace) -> int:
     points = read_cloud(args.source)
     t1 = time.perf_counter()
     tilt = args.roll is not None or args.pitch is not None
-    grid = grid_points(points, spec,
-                       roll=math.radians(args.roll or 0.0) if tilt else None,
-                       pitch=math.radians(args.pitch or 0.0) if tilt else None)
-    rough = patch_roughness(grid.heights, spec.spacing, method=args.method,
-                            noise_psd=grid.noise_psd if args.subtract_noise else None,
-                            subtract_noise=args.subtract_noise, gridding=grid.gridding)
+    grid = grid_points(
+        points,
+        spec,
+        roll=math.radians(args.roll or 0.0) if tilt else None,
+        pitch=math.radians(args.pitch or 0.0) if tilt else None,
+    )
+    subtract = not args.keep_noise and math.isfinite(grid.noise_psd)
+    rough = patch_roughness(
+        grid.heights,
+        spec.spacing,
+        method=args.method,
+        noise_psd=grid.noise_psd if subtract else None,
+        subtract_noise=subtract,
+        gridding=grid.gridding,
+    )
     t2 = time.perf_counter()
     result = {
         "file": str(args.source),
@@ -84,21 +111,29 @@ def run_cloud(args: argparse.Namespace) -> int:
         return 0
     rows = [
         ["cloud", f"{args.source} ({len(points):,} points, {grid.n_points:,} in the patch)"],
-        ["patch", f"{spec.n * spec.spacing:.3f} m square, {spec.ahead:.3f} m ahead, "
-                  f"{spec.spacing * 1e3:g} mm grid ({spec.n} x {spec.n}), "
-                  f"{grid.fill_fraction:.0%} of cells filled, "
-                  f"{grid.points_per_cell:.1f} points per cell ({grid.gridding})"],
+        [
+            "patch",
+            f"{spec.n * spec.spacing:.3f} m square, {spec.ahead:.3f} m ahead, "
+            f"{spec.spacing * 1e3:g} mm grid ({spec.n} x {spec.n}), "
+            f"{grid.fill_fraction:.0%} of cells filled, "
+            f"{grid.points_per_cell:.1f} points per cell ({grid.gridding})",
+        ],
         ["band", f"{rough.omega[0]:.2f} to {rough.omega[-1]:.1f} rad/m"],
         ["R", f"{rough.R:.3e} m^3/rad  (sigma {rough.sigma_R:.2e})  ISO {rough.iso_class}"],
         ["w", f"{rough.w:.3f}  (sigma {rough.sigma_w:.3f})"],
         ["rms", f"{rough.rms * 1e3:.2f} mm"],
         ["profiles", f"{rough.n_profiles} used, {rough.n_dropped} dropped"],
-        ["noise", f"{grid.point_noise * 1e3:.2f} mm per point -> floor "
-                  f"{grid.noise_psd:.2e} m^3/rad"
-                  + (" (subtracted)" if rough.noise_subtracted else "")],
+        [
+            "noise",
+            f"{grid.point_noise * 1e3:.2f} mm per point -> floor "
+            f"{grid.noise_psd:.2e} m^3/rad" + (" (subtracted)" if rough.noise_subtracted else ""),
+        ],
         ["method", rough.method],
-        ["time", f"{result['timing_ms']['process']:.1f} ms after loading "
-                 f"({result['timing_ms']['load']:.1f} ms to load)"],
+        [
+            "time",
+            f"{result['timing_ms']['process']:.1f} ms after loading "
+            f"({result['timing_ms']['load']:.1f} ms to load)",
+        ],
     ]
     print(table(rows))
     return 0

@@ -1,0 +1,353 @@
+"""Features along a traverse: for every frame, the patch ahead and its PSD roughness.
+
+For each frame of a :class:`~rough_map.io.traverse.Traverse` this
+
+1. takes the frame's point cloud (vehicle frame), or reconstructs one from its stereo pair;
+2. optionally compensates tilt with the frame's IMU roll and pitch (paper Eq. 11);
+3. cuts and grids the patch of interest (:func:`rough_map.patch.grid_points`);
+4. estimates R, w and their uncertainty along the direction of travel, and the same across
+   it (anisotropy), with the gap policy of :mod:`rough_map.psd`;
+5. records whether the patch is valid, and why not: too few points, too many empty cells,
+   or a patch the estimator refuses. An invalid frame never stops the run.
+
+The result is a :class:`FeatureTable`: one row per frame with the columns of
+:data:`COLUMNS`, plus the patch-mean log10 PSD (``psd_01`` ... ) that the classifier uses.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from rough_map.errors import FileFormatError, InputError, RoughMapError
+from rough_map.patch import PatchSpec, grid_points
+from rough_map.psd import patch_roughness
+
+log = logging.getLogger(__name__)
+
+#: Columns of a features table, in order (spectrum columns follow).
+COLUMNS = (
+    "frame", "t", "x", "y", "yaw", "R", "w", "sigma_R", "sigma_w", "rms", "iso_class",
+    "n_points", "valid", "reason", "label", "R_lat", "w_lat", "fit_residual", "fill",
+    "point_noise", "noise_psd", "level_angle",
+)
+_TEXT = {"iso_class", "reason", "label"}
+_BOOL = {"valid"}
+_INT = {"frame", "n_points"}
+
+
+@dataclass
+class FeatureTable:
+    """Per-frame features of a traverse.
+
+    Attributes
+    ----------
+    columns : dict of str to ndarray
+        The :data:`COLUMNS` (R in m^3/rad, rms in m, t in s, x/y in m, yaw in rad, ...).
+    omega : ndarray
+        Wavenumbers in rad/m of the spectrum columns.
+    log_psd : ndarray, shape (n_frames, len(omega))
+        log10 of the patch-mean PSD in m^3/rad (NaN rows for invalid frames).
+    name : str
+        Name of the traverse.
+    """
+
+    columns: dict[str, np.ndarray]
+    omega: np.ndarray
+    log_psd: np.ndarray
+    name: str = ""
+    meta: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.columns["t"])
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        return self.columns[key]
+
+    @property
+    def valid(self) -> np.ndarray:
+        return self.columns["valid"].astype(bool)
+
+    def distance(self) -> np.ndarray:
+        """Cumulative distance travelled along the path, m (from the poses)."""
+        x, y = self.columns["x"], self.columns["y"]
+        step = np.hypot(np.diff(x), np.diff(y))
+        return np.concatenate([[0.0], np.cumsum(step)])
+
+    def spectrum_names(self) -> list[str]:
+        return [f"psd_{k:02d}" for k in range(1, self.omega.size + 1)]
+
+
+def frame_features(
+    points: np.ndarray,
+    spec: PatchSpec,
+    *,
+    roll: float | None = None,
+    pitch: float | None = None,
+    method: str = "unbiased",
+    subtract_noise: bool = True,
+    min_points: int = 2000,
+    min_fill: float = 0.7,
+) -> tuple[dict, np.ndarray | None, np.ndarray | None]:
+    """Features of one frame's cloud; never raises for a bad patch (valid=False instead).
+
+    Returns (row, omega, mean PSD in m^3/rad) where row holds the scalar columns.
+    """
+    row: dict = {"valid": False, "reason": "", "n_points": 0}
+    try:
+        grid = grid_points(points, spec, roll=roll, pitch=pitch, min_points=min_points)
+    except RoughMapError as exc:
+        row["reason"] = f"too few points: {exc}" if "points" in str(exc) else str(exc)
+        return row, None, None
+    row.update(n_points=grid.n_points, fill=grid.fill_fraction, point_noise=grid.point_noise,
+               noise_psd=grid.noise_psd, level_angle=grid.level_angle)
+    if grid.fill_fraction < min_fill:
+        row["reason"] = f"too many gaps: {grid.fill_fraction:.0%} of cells filled"
+        return row, None, None
+    noise = grid.noise_psd if subtract_noise and math.isfinite(grid.noise_psd) else None
+    try:
+        lon = patch_roughness(grid.heights, spec.spacing, method=method, noise_psd=noise,
+                              subtract_noise=noise is not None, gridding=grid.gridding)
+        lat = patch_roughness(grid.heights.T, spec.spacing, method=method, noise_psd=noise,
+                              subtract_noise=noise is not None, gridding=grid.gridding)
+    except RoughMapError as exc:
+        row["reason"] = str(exc)
+        return row, None, None
+    row.update(
+        valid=True, R=lon.R, w=lon.w, sigma_R=lon.sigma_R, sigma_w=lon.sigma_w, rms=lon.rms,
+        iso_class=lon.iso_class, R_lat=lat.R, w_lat=lat.w, fit_residual=lon.fit_residual,
+    )
+    return row, lon.omega, lon.psd
+
+
+def traverse_features(
+    traverse,
+    spec: PatchSpec | None = None,
+    *,
+    use_imu: bool = True,
+    source: str = "auto",
+    method: str = "unbiased",
+    subtract_noise: bool = True,
+    min_points: int = 2000,
+    min_fill: float = 0.7,
+    progress: bool = False,
+) -> FeatureTable:
+    """Features of every frame of a traverse.
+
+    Parameters
+    ----------
+    traverse : Traverse or path
+        A loaded traverse, or its folder / file.
+    spec : PatchSpec, optional
+        Patch geometry (default: 0.896 m square, 1 m ahead, 8 mm).
+    use_imu : bool
+        Compensate tilt with the frames' IMU roll/pitch when they have one.
+    source : {"auto", "cloud", "stereo"}
+        Where the points come from: the frame's cloud, its stereo pair, or the cloud when
+        there is one ("auto").
+    method : {"unbiased", "paper"}
+        Estimator (see :func:`rough_map.psd.patch_roughness`).
+    subtract_noise : bool
+        Subtract the noise floor estimated from the within-cell scatter.
+    min_points : int
+        Fewest points in the patch for a valid frame.
+    min_fill : float
+        Smallest fraction of filled cells for a valid frame.
+    progress : bool
+        Progress bar on stderr.
+    """
+    from tqdm import tqdm
+
+    from rough_map.io.traverse import Traverse, load_traverse
+
+    if not isinstance(traverse, Traverse):
+        traverse = load_traverse(traverse)
+    if source not in ("auto", "cloud", "stereo"):
+        raise InputError(f"source must be 'auto', 'cloud' or 'stereo', got {source!r}")
+    spec = spec or PatchSpec()
+    stereo = None
+    n = len(traverse)
+    rows: list[dict] = []
+    spectra: list[np.ndarray | None] = []
+    omega = None
+    for i in tqdm(range(n), desc=f"features {traverse.name}", unit="frame",
+                  disable=not progress):
+        frame = traverse.frames[i]
+        use_stereo = source == "stereo" or (source == "auto" and frame.cloud is None)
+        try:
+            if use_stereo:
+                stereo = stereo or _StereoSource(traverse, spec)
+                points = stereo.cloud(i)
+            else:
+                points = traverse.load_cloud(i)
+        except FileFormatError as exc:
+            row, om, psd = {"valid": False, "reason": f"unreadable: {exc}", "n_points": 0}, None, None
+        else:
+            roll = pitch = None
+            if use_imu and frame.imu is not None:
+                roll, pitch = frame.imu.roll, frame.imu.pitch
+            row, om, psd = frame_features(points, spec, roll=roll, pitch=pitch, method=method,
+                                          subtract_noise=subtract_noise,
+                                          min_points=min_points, min_fill=min_fill)
+        if om is not None:
+            omega = om
+        if not row["valid"]:
+            log.info("frame %d invalid: %s", i, row["reason"])
+        row.update(frame=i, t=frame.t, x=frame.pose.x, y=frame.pose.y, yaw=frame.pose.yaw,
+                   label=frame.label or "")
+        rows.append(row)
+        spectra.append(psd)
+    if omega is None:
+        omega = 2 * np.pi * np.arange(1, spec.n // 2 + 1) / (spec.n * spec.spacing)
+    log_psd = np.full((n, omega.size), np.nan)
+    for i, s in enumerate(spectra):
+        if s is not None:
+            log_psd[i] = np.log10(s)
+    n_invalid = sum(not r["valid"] for r in rows)
+    if n_invalid:
+        log.warning("%s: %d of %d frames have no valid patch", traverse.name, n_invalid, n)
+    return FeatureTable(_columns(rows), omega, log_psd, traverse.name)
+
+
+def _columns(rows: list[dict]) -> dict[str, np.ndarray]:
+    cols = {}
+    for c in COLUMNS:
+        if c in _TEXT:
+            cols[c] = np.array([str(r.get(c, "") or "") for r in rows], dtype=object)
+        elif c in _BOOL:
+            cols[c] = np.array([bool(r.get(c, False)) for r in rows])
+        elif c in _INT:
+            cols[c] = np.array([int(r.get(c, 0)) for r in rows])
+        else:
+            cols[c] = np.array([float(r.get(c, math.nan)) for r in rows])
+    return cols
+
+
+class _StereoSource:
+    """Clouds from a traverse's stereo pairs (lazy, so clouds-only runs need no OpenCV)."""
+
+    def __init__(self, traverse, spec: PatchSpec) -> None:
+        from rough_map.io.stereo import StereoCalibration
+
+        if traverse.spec.calibration is None:
+            raise InputError(f"{traverse.name}: stereo needs a 'calibration' in the traverse")
+        self.traverse = traverse
+        self.spec = spec
+        self.calib = StereoCalibration.model_validate(
+            traverse.spec.calibration.model_dump()
+        )
+
+    def cloud(self, i: int) -> np.ndarray:
+        from rough_map.io.stereo import read_image, stereo_to_cloud
+
+        frame = self.traverse.frames[i]
+        if frame.left is None or frame.right is None:
+            raise InputError(f"{self.traverse.name}: frames[{i}] has no stereo pair")
+        left = read_image(self.traverse.resolve(frame.left))
+        right = read_image(self.traverse.resolve(frame.right))
+        return stereo_to_cloud(left, right, self.calib, ahead=self.spec.ahead,
+                               size=self.spec.n * self.spec.spacing, lateral=self.spec.lateral)
+
+
+# --------------------------------------------------------------------------- files
+
+
+def write_features(table: FeatureTable, path: str | Path) -> Path:
+    """Write a features table as .csv, or .parquet (needs pyarrow); atomic."""
+    from rough_map.io.pointcloud import atomic_output
+
+    path = Path(path)
+    names = list(COLUMNS) + table.spectrum_names()
+    data = dict(table.columns)
+    for k, name in enumerate(table.spectrum_names()):
+        data[name] = table.log_psd[:, k]
+    if path.suffix == ".parquet":
+        try:
+            import pyarrow as pa
+            import pyarrow.parquet as pq
+        except ImportError:
+            raise InputError("writing .parquet needs pyarrow: pip install pyarrow") from None
+        arrays = {k: (list(v) if k in _TEXT else v) for k, v in data.items()}
+        meta = {b"omega": ",".join(f"{o:.12g}" for o in table.omega).encode(),
+                b"name": table.name.encode()}
+        tbl = pa.table(arrays).replace_schema_metadata(meta)
+        with atomic_output(path) as tmp:
+            pq.write_table(tbl, tmp)
+        return path
+    if path.suffix != ".csv":
+        raise InputError(f"features are written as .csv or .parquet, not {path.suffix!r}")
+    with atomic_output(path) as tmp, open(tmp, "w", newline="") as fh:
+        fh.write(f"# rough_map features of {table.name}; omega_rad_per_m="
+                 + ",".join(f"{o:.12g}" for o in table.omega) + "\n")
+        writer = csv.writer(fh)
+        writer.writerow(names)
+        for i in range(len(table)):
+            writer.writerow([_fmt(data[c][i]) for c in names])
+    return path
+
+
+def _fmt(v) -> str:
+    if isinstance(v, bool | np.bool_):
+        return "true" if v else "false"
+    if isinstance(v, float | np.floating):
+        return "" if not math.isfinite(v) else f"{float(v):.9g}"
+    return str(v)
+
+
+def read_features(path: str | Path) -> FeatureTable:
+    """Read a table written by :func:`write_features` (.csv or .parquet)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileFormatError(path, "no such features file")
+    if path.suffix == ".parquet":
+        import pyarrow.parquet as pq
+
+        tbl = pq.read_table(path)
+        meta = tbl.schema.metadata or {}
+        omega = np.array([float(v) for v in meta.get(b"omega", b"").decode().split(",") if v])
+        raw = {k: np.asarray(tbl[k].to_pylist(), dtype=object) for k in tbl.column_names}
+        name = meta.get(b"name", b"").decode()
+    else:
+        with open(path, newline="") as fh:
+            first = fh.readline()
+            if not first.startswith("# rough_map features") or "omega_rad_per_m=" not in first:
+                raise FileFormatError(path, "not a rough_map features table (header line)")
+            name = first[len("# rough_map features of "):].split(";")[0]
+            omega = np.array([float(v) for v in first.split("omega_rad_per_m=")[1].split(",")])
+            reader = csv.reader(fh)
+            header = next(reader, None)
+            if header is None:
+                raise FileFormatError(path, "truncated: no column header")
+            body = list(reader)
+        raw = {h: np.array([r[j] if j < len(r) else "" for r in body], dtype=object)
+               for j, h in enumerate(header)}
+    missing = [c for c in COLUMNS if c not in raw]
+    if missing:
+        raise FileFormatError(path, f"missing columns {missing}", field=missing[0])
+    cols: dict[str, np.ndarray] = {}
+    for c in COLUMNS:
+        v = raw[c]
+        try:
+            if c in _TEXT:
+                cols[c] = np.array(["" if x is None else str(x) for x in v], dtype=object)
+            elif c in _BOOL:
+                cols[c] = np.array([str(x).lower() in ("true", "1") for x in v])
+            elif c in _INT:
+                cols[c] = np.array([int(float(x)) if str(x) != "" else 0 for x in v])
+            else:
+                cols[c] = np.array([float(x) if x not in ("", None) else math.nan for x in v])
+        except ValueError as exc:
+            raise FileFormatError(path, f"bad value: {exc}", field=c) from None
+    names = [f"psd_{k:02d}" for k in range(1, omega.size + 1)]
+    try:
+        log_psd = np.column_stack(
+            [np.array([float(x) if x not in ("", None) else math.nan for x in raw[n]])
+             for n in names]) if names else np.zeros((len(cols["t"]), 0))
+    except KeyError as exc:
+        raise FileFormatError(path, "missing spectrum column", field=str(exc)) from None
+    return FeatureTable(cols, omega, log_psd, name)

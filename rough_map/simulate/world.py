@@ -1,0 +1,269 @@
+"""Terrain worlds laid out as the paper's experiments, and a rover driving over them.
+
+A world is a :class:`~rough_map.types.HeightField` (x along the course, y across it) with a
+class map. It is built from segments of the named surfaces of :mod:`rough_map.terrain`,
+blended over ``blend`` metres where two segments meet, and modulated by a slowly varying
+roughness envelope so that R drifts along a uniform stretch (about a factor 2 at 1 sigma,
+as the paper's standard deviations show).
+
+Courses (paper section 5.1):
+
+* ``ploughed``: 42 m straight on ploughed soil;
+* ``compact``: 22 m on compact soil;
+* ``mixed``: concrete -> dirt road -> gravel, with a manhole on the concrete at 12 m;
+* ``mixed-reverse``: the same surfaces from gravel to concrete;
+* ``random``: a random sequence of all five surfaces in 8-25 m segments (training data).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from rough_map import terrain
+from rough_map.errors import InputError
+from rough_map.types import HeightField
+
+log = logging.getLogger(__name__)
+
+CLASS_NAMES: tuple[str, ...] = tuple(terrain.SURFACES)
+COURSES = ("mixed", "mixed-reverse", "ploughed", "compact", "random")
+
+
+@dataclass(frozen=True)
+class Segment:
+    """A stretch of one surface: ``surface`` from ``start`` to ``end`` m along x."""
+
+    surface: str
+    start: float
+    end: float
+
+
+@dataclass(frozen=True)
+class Defect:
+    """An isolated defect (manhole, pit, rock) centred at world (x, y) m."""
+
+    kind: str
+    x: float
+    y: float
+
+
+def course_layout(
+    course: str, length: float | None = None, seed: int = 0
+) -> tuple[list[Segment], list[Defect]]:
+    """Segments and defects of a named course; ``length`` in m overrides the default."""
+    if course not in COURSES:
+        raise InputError(f"unknown course {course!r}; expected one of {COURSES}")
+    if length is not None and not (math.isfinite(length) and length >= 2.0):
+        raise InputError(f"length must be at least 2 m, got {length!r}")
+    if course == "ploughed":
+        total = length or 42.0
+        return [Segment("ploughed_soil", 0.0, total)], []
+    if course == "compact":
+        total = length or 22.0
+        return [Segment("compact_soil", 0.0, total)], []
+    if course in ("mixed", "mixed-reverse"):
+        total = length or 36.0
+        third = total / 3
+        names = ["concrete", "dirt_road", "gravel"]
+        if course == "mixed-reverse":
+            names = names[::-1]
+        segs = [Segment(n, i * third, (i + 1) * third) for i, n in enumerate(names)]
+        concrete = next(s for s in segs if s.surface == "concrete")
+        # The paper's manhole sits about 12 m along the concrete pathway.
+        at = concrete.start + min(12.0, 0.65 * (concrete.end - concrete.start))
+        if course == "mixed-reverse":
+            at = concrete.end - min(12.0, 0.65 * (concrete.end - concrete.start))
+        return segs, [Defect("manhole", at, 0.0)]
+    rng = np.random.default_rng(seed)
+    total = length or 120.0
+    segs: list[Segment] = []
+    x = 0.0
+    previous = None
+    while x < total:
+        choices = [c for c in CLASS_NAMES if c != previous]
+        name = str(rng.choice(choices))
+        seg_len = float(rng.uniform(8.0, 25.0))
+        end = min(total, x + seg_len)
+        if total - end < 4.0:
+            end = total
+        segs.append(Segment(name, x, end))
+        previous, x = name, end
+    return segs, []
+
+
+def build_world(
+    segments: list[Segment],
+    defects: list[Defect] = (),
+    *,
+    width: float = 4.0,
+    spacing: float = 0.004,
+    seed: int = 0,
+    envelope_sigma: float = 0.5,
+    envelope_length: float = 1.5,
+    blend: float = 0.3,
+    lead: float = 3.0,
+) -> HeightField:
+    """Build the world height field of a course.
+
+    Parameters
+    ----------
+    segments : list of Segment
+        Surfaces along x (m).
+    defects : list of Defect
+        Isolated defects.
+    width : float
+        Extent across the course in m (centred on y = 0).
+    spacing : float
+        Cell size in m; 4 mm keeps wavelengths down to the 8 mm patch grid's Nyquist.
+    seed : int
+        Seed of everything random.
+    envelope_sigma : float
+        Standard deviation of ln R along a uniform stretch (the roughness envelope).
+    envelope_length : float
+        Correlation length of the envelope in m.
+    blend : float
+        Width in m of the cross-fade between segments.
+    lead : float
+        Extra terrain in m before the start and after the end (the sensor looks ahead).
+
+    Returns
+    -------
+    HeightField
+        With ``classes`` indexing :data:`CLASS_NAMES`.
+    """
+    if not segments:
+        raise InputError("a world needs at least one segment")
+    rng = np.random.default_rng(seed)
+    x0 = segments[0].start - lead
+    x1 = segments[-1].end + lead
+    nx = int(math.ceil((x1 - x0) / spacing)) + 1
+    ny = int(math.ceil(width / spacing)) + 1
+    xs = x0 + spacing * np.arange(nx)
+    heights = np.zeros((ny, nx))
+    weight_sum = np.zeros(nx)
+    class_idx = np.zeros(nx, dtype=np.int16)
+    for k, seg in enumerate(segments):
+        lo = seg.start - (lead if k == 0 else blend)
+        hi = seg.end + (lead if k == len(segments) - 1 else blend)
+        j0 = max(0, int((lo - x0) / spacing))
+        j1 = min(nx, int(math.ceil((hi - x0) / spacing)) + 1)
+        # Generate on a padded, FFT-friendly extent so the segment is not periodic.
+        n_cols = j1 - j0
+        pad = int(1.0 / spacing)
+        field = terrain.generate(seg.surface, (ny, n_cols + pad), spacing, seed=rng)[:, :n_cols]
+        ramp = np.clip(
+            np.minimum(xs[j0:j1] - (seg.start - blend), (seg.end + blend) - xs[j0:j1])
+            / (2 * blend),
+            0.0,
+            1.0,
+        )
+        if k == 0:
+            ramp[xs[j0:j1] < seg.start] = 1.0
+        if k == len(segments) - 1:
+            ramp[xs[j0:j1] > seg.end] = 1.0
+        heights[:, j0:j1] += field * ramp[None, :]
+        weight_sum[j0:j1] += ramp
+        inside = (xs >= seg.start) & (xs < seg.end)
+        if k == 0:
+            inside |= xs < seg.start
+        if k == len(segments) - 1:
+            inside |= xs >= seg.end
+        class_idx[inside] = CLASS_NAMES.index(terrain.surface_spec(seg.surface).name)
+    heights /= np.maximum(weight_sum, 1e-9)[None, :]
+    if envelope_sigma > 0:
+        env = _envelope((ny, nx), spacing, envelope_length, rng)
+        heights *= np.exp(0.5 * envelope_sigma * env)
+    origin = (x0, -0.5 * (ny - 1) * spacing)
+    ys = origin[1] + spacing * np.arange(ny)
+    for d in defects:
+        add = terrain.DEFECTS.get(d.kind)
+        if add is None:
+            raise InputError(f"unknown defect {d.kind!r}; expected one of {sorted(terrain.DEFECTS)}")
+        j = int((d.x - x0) / spacing)
+        i = int((d.y - origin[1]) / spacing)
+        half = int(0.6 / spacing)
+        sl = (slice(max(0, i - half), i + half), slice(max(0, j - half), j + half))
+        local = heights[sl]
+        cx = (j - sl[1].start) * spacing
+        cy = (i - sl[0].start) * spacing
+        heights[sl] = add(local, spacing, (cx, cy))
+    classes = np.broadcast_to(class_idx[None, :], (ny, nx)).copy()
+    del ys
+    return HeightField(heights, spacing, origin, classes, CLASS_NAMES)
+
+
+def _envelope(shape: tuple[int, int], spacing: float, length: float,
+              rng: np.random.Generator) -> np.ndarray:
+    """Unit-variance smooth Gaussian field (correlation length ``length`` m)."""
+    step = max(1, int(length / 8 / spacing))
+    coarse_shape = (shape[0] // step + 3, shape[1] // step + 3)
+    g = ndimage.gaussian_filter(rng.standard_normal(coarse_shape), length / (step * spacing),
+                                mode="wrap")
+    g /= g.std() or 1.0
+    rows = np.arange(shape[0]) / step
+    cols = np.arange(shape[1]) / step
+    return ndimage.map_coordinates(g, np.meshgrid(rows, cols, indexing="ij"), order=1)
+
+
+# --------------------------------------------------------------------------- the rover
+
+
+@dataclass(frozen=True)
+class RoverGeometry:
+    """Wheel layout of the rover (paper: 0.7 m long, 0.5 m wide), m."""
+
+    wheelbase: float = 0.5
+    track: float = 0.45
+    wheel_radius: float = 0.1
+
+
+def drive(
+    world: HeightField,
+    start: float,
+    end: float,
+    *,
+    speed: float = 0.5,
+    rate: float = 2.0,
+    lateral_wander: float = 0.15,
+    seed: int = 0,
+    rover: RoverGeometry | None = None,
+) -> np.ndarray:
+    """Poses of a rover driving along x from ``start`` to ``end`` m.
+
+    Roll and pitch follow the terrain under the four wheels (heights smoothed over the
+    wheel's contact length). Returns rows ``(t, x, y, z, roll, pitch, yaw)`` (s, m, rad).
+    """
+    if not (speed > 0 and rate > 0):
+        raise InputError(f"speed (m/s) and rate (Hz) must be positive, got {speed}, {rate}")
+    rover = rover or RoverGeometry()
+    rng = np.random.default_rng(seed)
+    step = speed / rate
+    n = int(math.floor((end - start) / step)) + 1
+    t = np.arange(n) / rate
+    x = start + step * np.arange(n)
+    # Gentle lateral wander, as a remote-controlled drive along a straight line.
+    phase = rng.uniform(0, 2 * np.pi)
+    y = lateral_wander * np.sin(2 * np.pi * x / rng.uniform(15, 30) + phase)
+    yaw = np.arctan(np.gradient(y, x)) if n > 1 else np.zeros(n)
+    sigma = max(1.0, rover.wheel_radius / 2 / world.spacing)
+    smooth = HeightField(ndimage.gaussian_filter(world.heights, sigma), world.spacing,
+                         world.origin)
+    c, s = np.cos(yaw), np.sin(yaw)
+    hw, ht = rover.wheelbase / 2, rover.track / 2
+    wheels = {}
+    for name, (dx, dy) in {"fl": (hw, ht), "fr": (hw, -ht), "rl": (-hw, ht),
+                           "rr": (-hw, -ht)}.items():
+        wheels[name] = smooth.sample(x + c * dx - s * dy, y + s * dx + c * dy)
+    front = 0.5 * (wheels["fl"] + wheels["fr"])
+    rear = 0.5 * (wheels["rl"] + wheels["rr"])
+    left = 0.5 * (wheels["fl"] + wheels["rl"])
+    right = 0.5 * (wheels["fr"] + wheels["rr"])
+    pitch = np.arctan2(rear - front, rover.wheelbase)  # nose down is positive
+    roll = np.arctan2(left - right, rover.track)  # left side up is positive
+    z = 0.25 * (front + rear + left + right)
+    return np.column_stack([t, x, y, z, roll, pitch, yaw])
