@@ -294,6 +294,7 @@ _SHIPPED_TABLES = Path(__file__).parent / "data" / "leakage_tables.npz"
 
 
 GRIDDINGS = ("point", "cell_mean")
+_EXACT_BINS = 48
 
 
 @lru_cache(maxsize=32)
@@ -317,6 +318,7 @@ def _cell_mean_gain(nu: np.ndarray, waviness: np.ndarray, aliases: int = 4) -> n
     ``S(k) ~ |k|^(w - 1)`` whose profiles have PSD ``Omega^w`` this returns the ratio, with
     ``B = 1``, for every ``nu`` (rad per sample) and waviness: shape (len(nu), len(w)).
     """
+
     def sinc2(v):
         return np.sinc(v / (2 * np.pi)) ** 2
 
@@ -352,31 +354,48 @@ def _compute_leakage_table(n: int, window: str, gridding: str = "point") -> np.n
         raise InputError(f"gridding must be one of {GRIDDINGS}, got {gridding!r}")
     win, basis, wss = _hann_plan(n, window)
     t = np.arange(n, dtype=float)
-    # Normalised angular frequency per sample (Omega * B), band-limited at pi: log-spaced
-    # below the first ordinate (where the detrending acts), then 8 points per ordinate.
+    k_all = np.arange(1, n // 2 + 1)
+    # Far from k = 1 the window only mixes neighbours of a smooth spectrum (< 0.1 % beyond
+    # k = 48): for long profiles compute the exact expectation of the first ordinates only.
+    k = k_all[:_EXACT_BINS] if n // 2 > 128 else k_all
+    # Normalised angular frequency per sample (Omega * B): log-spaced below the first
+    # ordinate (where the detrending acts), then 8 points per ordinate up to a few
+    # ordinates past the last exact one (band-limited at pi).
     step = 2 * math.pi / n
     low = np.exp(np.linspace(math.log(step / 100.0), math.log(step / 2), 120))
-    high = np.arange(step / 2, math.pi + step / 16, step / 8)
+    top = min(math.pi, (k[-1] + 8) * step)
+    high = np.arange(step / 2, top + step / 16, step / 8)
     nu = np.concatenate([low[:-1], high])
     dnu = np.gradient(nu)
-    phase = np.exp(1j * t[:, None] * nu[None, :])
-    resid = phase - basis @ (basis.T @ phase)  # detrend each unit sinusoid
-    k = np.arange(1, n // 2 + 1)
-    dft = np.exp(-2j * np.pi * np.outer(k, t) / n) * win[None, :]
-    f_pos = dft @ resid
-    f_neg = dft @ np.conj(resid)
-    gain = 0.5 * (np.abs(f_pos) ** 2 + np.abs(f_neg) ** 2)  # E over phase, x2 for one-sided
+    # |DFT|^2 at the ordinates of each detrended, windowed unit sinusoid, by FFT, in chunks.
+    gain = np.empty((k.size, nu.size))
+    for j0 in range(0, nu.size, 512):
+        phase = np.exp(1j * nu[j0 : j0 + 512, None] * t[None, :])
+        resid = phase - (phase @ basis) @ basis.T  # detrend each unit sinusoid
+        spec = np.fft.fft(resid * win[None, :], axis=1)
+        f_pos = spec[:, k]
+        f_neg = np.conj(spec[:, (n - k) % n])  # the spectrum of the conjugate sinusoid
+        # Expectation over the phase; x2 for one-sided.
+        gain[:, j0 : j0 + 512] = 0.5 * (np.abs(f_pos) ** 2 + np.abs(f_neg) ** 2).T
     scale = 1.0 / (math.pi * wss)  # (2 B / (2 pi sum w^2)) with B = 1
-    if n % 2 == 0:
+    if n % 2 == 0 and k.size == k_all.size:
         gain[-1] *= 0.5
-    omega_k = 2 * math.pi * k / n
     spectrum = nu[:, None] ** _W_GRID[None, :]
+    omega_all = 2 * math.pi * k_all / n
+    local = np.zeros((_W_GRID.size, k_all.size))  # smooth multiplicative spectrum change
     if gridding == "cell_mean":
-        coarse = _W_GRID[::4]
-        g = _cell_mean_gain(nu, coarse)
-        spectrum *= np.stack([np.interp(_W_GRID, coarse, row) for row in g])
+        # The gain is smooth in nu and w: compute it on a coarse grid, interpolate.
+        coarse_w = _W_GRID[::4]
+        coarse_nu = np.unique(np.concatenate([low, np.linspace(step / 2, math.pi, 160)]))
+        g = _cell_mean_gain(coarse_nu, coarse_w)
+        g_w = np.stack([np.interp(_W_GRID, coarse_w, row) for row in g])  # (coarse nu, w)
+        spectrum *= np.stack([np.interp(nu, coarse_nu, col) for col in g_w.T], axis=1)
+        local = np.log(np.stack([np.interp(omega_all, coarse_nu, col) for col in g_w.T]))
     expected = scale * (gain * dnu) @ spectrum  # (k, w grid)
-    table = np.log(expected.T) - _W_GRID[:, None] * np.log(omega_k)[None, :]
+    table = local.copy()
+    table[:, : k.size] = np.log(expected.T) - _W_GRID[:, None] * np.log(omega_all[: k.size])
+    if n % 2 == 0 and k.size < k_all.size:
+        table[:, -1] += math.log(0.5)  # the Nyquist ordinate carries half the density
     return table
 
 
@@ -390,8 +409,14 @@ def write_leakage_tables(path: Path = _SHIPPED_TABLES, sizes=(56, 64, 100, 112, 
 
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_output(path) as tmp, open(tmp, "wb") as fh:
-        np.savez(fh, **{f"hann_{n}_{g}": _compute_leakage_table(n, "hann", g)
-                        for n in sizes for g in GRIDDINGS})
+        np.savez(
+            fh,
+            **{
+                f"hann_{n}_{g}": _compute_leakage_table(n, "hann", g)
+                for n in sizes
+                for g in GRIDDINGS
+            },
+        )
 
 
 def _interp_rows(w: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -422,8 +447,12 @@ def _fast_plan(n: int, window: str):
     """float32 window, detrend basis, spectrum of the windowed basis, and density scale."""
     win, basis, wss = _hann_plan(n, window)
     basis_fft = np.fft.rfft(basis.T * win, axis=-1)[:, 1:]
-    return (win.astype(np.float32), basis.astype(np.float32),
-            basis_fft.astype(np.complex64), 1.0 / (math.pi * wss))
+    return (
+        win.astype(np.float32),
+        basis.astype(np.float32),
+        basis_fft.astype(np.complex64),
+        1.0 / (math.pi * wss),
+    )
 
 
 def _periodogram(
@@ -547,6 +576,7 @@ def patch_roughness(
     max_gap_fraction: float = 0.2,
     min_profiles: int = 3,
     gridding: str = "point",
+    waviness: float | None = None,
 ) -> PatchRoughness | list[PatchRoughness]:
     """Roughness parameters (R, w) of a patch, with their first-order uncertainty.
 
@@ -585,6 +615,10 @@ def patch_roughness(
         filter of the averaging steepens w by about 0.25 and raises R about 2.5 times, and
         the unbiased method corrects for it.
 
+    waviness : float, optional
+        Fix the waviness instead of fitting it (ISO 8608 classifies roads with w = -2);
+        then only R is estimated and ``sigma_w`` is 0.
+
     Returns
     -------
     PatchRoughness or list of PatchRoughness
@@ -600,6 +634,8 @@ def patch_roughness(
         raise InputError(f"method must be one of {METHODS}, got {method!r}")
     if gridding not in GRIDDINGS:
         raise InputError(f"gridding must be one of {GRIDDINGS}, got {gridding!r}")
+    if waviness is not None and not (math.isfinite(waviness) and -6 < waviness < 0):
+        raise InputError(f"waviness must be a negative number (about -2), got {waviness!r}")
     spacing = _check_spacing(spacing)
     if not (math.isfinite(omega0) and omega0 > 0):
         raise InputError(f"omega0 must be a positive wavenumber in rad/m, got {omega0!r}")
@@ -616,21 +652,36 @@ def patch_roughness(
         arr = arr[None]
     elif arr.shape[0] == 0:
         return []
-    if arr.ndim != 3 or arr.size == 0 or arr.shape[-1] < 8 or not np.isfinite(arr).all():
+    all_finite = arr.ndim == 3 and bool(np.isfinite(arr).all())
+    if not all_finite or arr.size == 0 or arr.shape[-1] < 8:
         _check_heights(arr.reshape(-1, arr.shape[-1]) if arr.ndim == 3 else arr)
     n_patch, m, n = arr.shape
     n_dropped = 0
-    if np.isnan(arr).any():
+    if not all_finite:  # only NaN can remain: _check_heights refuses infinities
         if not single:
             # Gap handling changes the number of profiles per patch: one at a time.
-            return [patch_roughness(a, spacing, window=window, method=method, nperseg=nperseg,
-                                    noverlap=noverlap, omega0=omega0, noise_psd=noise_psd,
-                                    subtract_noise=subtract_noise, max_gap=max_gap,
-                                    max_gap_fraction=max_gap_fraction,
-                                    min_profiles=min_profiles, gridding=gridding)
-                    for a in arr]
-        filled, keep = fill_gaps(arr[0], spacing, max_gap=max_gap,
-                                 max_gap_fraction=max_gap_fraction)
+            return [
+                patch_roughness(
+                    a,
+                    spacing,
+                    window=window,
+                    method=method,
+                    nperseg=nperseg,
+                    noverlap=noverlap,
+                    omega0=omega0,
+                    noise_psd=noise_psd,
+                    subtract_noise=subtract_noise,
+                    max_gap=max_gap,
+                    max_gap_fraction=max_gap_fraction,
+                    min_profiles=min_profiles,
+                    gridding=gridding,
+                    waviness=waviness,
+                )
+                for a in arr
+            ]
+        filled, keep = fill_gaps(
+            arr[0], spacing, max_gap=max_gap, max_gap_fraction=max_gap_fraction
+        )
         n_dropped = m - int(keep.sum())
         arr = filled[keep][None]
         if n_dropped:
@@ -648,7 +699,7 @@ def patch_roughness(
     out: list[PatchRoughness] = []
     chunk = max(1, _CHUNK_CELLS // (m_used * n))  # keep chunks in cache
     for start in range(0, n_patch, chunk):
-        part = arr[start:start + chunk]
+        part = arr[start : start + chunk]
         if nperseg is None or nperseg >= n:
             omega, p, ss = _periodogram(part, spacing, window)
             bias = -float(np.euler_gamma)
@@ -656,8 +707,23 @@ def patch_roughness(
         else:
             omega, p, bias = _spectrum(part, spacing, window, nperseg, noverlap)
             rms = _rms(part)
-        out += _fit(omega, p, bias, spacing, n, seg_n, window, method, omega0, noise_psd,
-                    subtract_noise, n_dropped, rms, gridding)
+        out += _fit(
+            omega,
+            p,
+            bias,
+            spacing,
+            n,
+            seg_n,
+            window,
+            method,
+            omega0,
+            noise_psd,
+            subtract_noise,
+            n_dropped,
+            rms,
+            gridding,
+            waviness,
+        )
     return out[0] if single else out
 
 
@@ -674,8 +740,9 @@ def _rms(h: np.ndarray) -> np.ndarray:
 
 
 @lru_cache(maxsize=64)
-def _fit_plan(n_bins: int, seg_n: int, method: str, spacing: float, omega0: float,
-              window: str, gridding: str):
+def _fit_plan(
+    n_bins: int, seg_n: int, method: str, spacing: float, omega0: float, window: str, gridding: str
+):
     """Everything of the line fit that depends only on the geometry (cached)."""
     omega = 2.0 * np.pi * np.arange(1, n_bins + 1) / (seg_n * spacing)
     mask = np.ones(n_bins, dtype=bool)
@@ -695,8 +762,23 @@ def _fit_plan(n_bins: int, seg_n: int, method: str, spacing: float, omega0: floa
     return mask, x, xm, xc, sxx, avg, proj, table @ xc, table @ avg
 
 
-def _fit(omega, p, bias, spacing, n, seg_n, window, method, omega0, noise_psd, subtract_noise,
-         n_dropped, rms, gridding) -> list[PatchRoughness]:
+def _fit(
+    omega,
+    p,
+    bias,
+    spacing,
+    n,
+    seg_n,
+    window,
+    method,
+    omega0,
+    noise_psd,
+    subtract_noise,
+    n_dropped,
+    rms,
+    gridding,
+    waviness=None,
+) -> list[PatchRoughness]:
     """Vectorised log-log fit of ``p`` (patches, profiles, bins).
 
     ``n`` is the profile length and ``seg_n`` the samples per spectral segment. The
@@ -706,7 +788,8 @@ def _fit(omega, p, bias, spacing, n, seg_n, window, method, omega0, noise_psd, s
     """
     n_patch, m, n_bins = p.shape
     base, x, xm0, xc0, sxx0, avg0, proj, leak_x, leak_a = _fit_plan(
-        n_bins, seg_n, method, spacing, omega0, window, gridding)
+        n_bins, seg_n, method, spacing, omega0, window, gridding
+    )
     logp = np.log(np.maximum(p, np.float32(1e-38)))
     mean_psd = p.mean(axis=1, dtype=np.float64)
     noise = math.nan if noise_psd is None else float(noise_psd)
@@ -734,8 +817,12 @@ def _fit(omega, p, bias, spacing, n, seg_n, window, method, omega0, noise_psd, s
     else:
         mask = np.broadcast_to(base, (n_patch, n_bins))
         shift = np.zeros((1, n_bins))
-        xm, xc, sxx, avg = (np.full(n_patch, xm0), xc0[None, :], np.full(n_patch, sxx0),
-                            avg0[None, :])
+        xm, xc, sxx, avg = (
+            np.full(n_patch, xm0),
+            xc0[None, :],
+            np.full(n_patch, sxx0),
+            avg0[None, :],
+        )
         proj_all = (logp.reshape(-1, n_bins) @ proj).astype(float)
         yx = proj_all[:, 0].reshape(n_patch, m)
         ym = proj_all[:, 1].reshape(n_patch, m)
@@ -749,13 +836,21 @@ def _fit(omega, p, bias, spacing, n, seg_n, window, method, omega0, noise_psd, s
         sa = sa - bias
         lx = np.zeros(n_patch)
         la = np.zeros(n_patch)
-        for _ in range(3):  # the window/detrend offset depends (weakly) on the waviness
-            w_patch = (yx.mean(axis=1) + sx - lx) / sxx
+        for _ in range(1 if waviness is not None else 3):
+            # The window/detrend offset depends (weakly) on the waviness.
+            w_patch = (
+                np.full(n_patch, float(waviness))
+                if waviness is not None
+                else (yx.mean(axis=1) + sx - lx) / sxx
+            )
             lx = _interp_rows(w_patch, leak_xp)
             la = _interp_rows(w_patch, leak_ap)
         sx = sx - lx
         sa = sa - la
-    wv = (yx + sx[:, None]) / sxx[:, None]
+    if waviness is None:
+        wv = (yx + sx[:, None]) / sxx[:, None]
+    else:
+        wv = np.full_like(yx, float(waviness))
     b = ym + sa[:, None] - wv * xm[:, None]
     wm = wv.mean(axis=1)
     bm = b.mean(axis=1)

@@ -22,23 +22,53 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("left", type=Path, help="left (reference) image, any format OpenCV reads")
     p.add_argument("right", type=Path, help="right image, same size")
-    p.add_argument("--calib", type=Path, required=True, metavar="FILE",
-                   help="rig calibration, YAML or JSON (fx fy cx cy width height baseline "
-                        "camera_to_vehicle)")
-    p.add_argument("--config", type=Path, metavar="FILE",
-                   help="matcher/filter settings like configs/stereo.yaml (default: built-in)")
-    p.add_argument("--out", type=Path, required=True, metavar="FILE",
-                   help="output cloud; the suffix picks the format (.npy, .ply, .las, ...)")
-    p.add_argument("--full-frame", action="store_true",
-                   help="match the whole image and keep every point (slower)")
+    p.add_argument(
+        "--calib",
+        type=Path,
+        required=True,
+        metavar="FILE",
+        help="rig calibration, YAML or JSON (fx fy cx cy width height baseline camera_to_vehicle)",
+    )
+    p.add_argument(
+        "--config",
+        type=Path,
+        metavar="FILE",
+        help="matcher/filter settings like configs/stereo.yaml (default: built-in)",
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        metavar="FILE",
+        help="output cloud; the suffix picks the format (.npy, .ply, .las, ...)",
+    )
+    p.add_argument(
+        "--full-frame",
+        action="store_true",
+        help="match the whole image and keep every point (slower)",
+    )
     g = p.add_argument_group("patch of interest (vehicle frame, metres)")
-    g.add_argument("--ahead", type=float, default=DEFAULT_AHEAD, metavar="M",
-                   help=f"distance of the patch centre ahead of the vehicle (default "
-                        f"{DEFAULT_AHEAD})")
-    g.add_argument("--size", type=float, default=DEFAULT_SIZE, metavar="M",
-                   help=f"side of the square patch (default {DEFAULT_SIZE})")
-    g.add_argument("--lateral", type=float, default=0.0, metavar="M",
-                   help="offset of the patch centre to the left (default 0)")
+    g.add_argument(
+        "--ahead",
+        type=float,
+        default=DEFAULT_AHEAD,
+        metavar="M",
+        help=f"distance of the patch centre ahead of the vehicle (default {DEFAULT_AHEAD})",
+    )
+    g.add_argument(
+        "--size",
+        type=float,
+        default=DEFAULT_SIZE,
+        metavar="M",
+        help=f"side of the square patch (default {DEFAULT_SIZE})",
+    )
+    g.add_argument(
+        "--lateral",
+        type=float,
+        default=0.0,
+        metavar="M",
+        help="offset of the patch centre to the left (default 0)",
+    )
     p.set_defaults(func=run)
 
 
@@ -54,8 +84,16 @@ def run(args: argparse.Namespace) -> int:
     config = StereoConfig.from_file(args.config) if args.config else StereoConfig()
     left, right = read_image(args.left), read_image(args.right)
     t0 = time.perf_counter()
-    points = stereo_to_cloud(left, right, calib, config, restrict_to_patch=not args.full_frame,
-                             ahead=args.ahead, size=args.size, lateral=args.lateral)
+    points = stereo_to_cloud(
+        left,
+        right,
+        calib,
+        config,
+        restrict_to_patch=not args.full_frame,
+        ahead=args.ahead,
+        size=args.size,
+        lateral=args.lateral,
+    )
     log.info("%d points in %.3f s", len(points), time.perf_counter() - t0)
     if len(points) == 0:
         raise PatchError(f"{args.left}: no valid stereo match over the patch; nothing written")
