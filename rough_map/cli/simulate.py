@@ -33,8 +33,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="skip rendering the stereo pairs (much faster)")
     p.add_argument("--points-per-cell", type=float, default=12.0, metavar="N",
                    help="density of the simulated range cloud per 8 mm cell (default 12)")
-    p.add_argument("--noise", type=float, default=0.0005, metavar="M",
-                   help="range noise of the cloud in m (default 0.0005)")
+    p.add_argument("--noise", type=float, default=0.0003, metavar="M",
+                   help="range noise of the cloud in m (default 0.0003)")
     p.set_defaults(func=run)
 
 
