@@ -129,6 +129,7 @@ def simulate(
     rate: float = 2.0,
     seed: int = 0,
     images: bool = True,
+    image_every: int = 1,
     sensor: SensorSpec | None = None,
     world_spacing: float = 0.002,
     progress: bool = False,
@@ -150,7 +151,9 @@ def simulate(
     seed : int
         Seed of the world, the drive and the sensors.
     images : bool
-        Render the stereo pair of every frame (slower).
+        Render stereo pairs (a few seconds a frame).
+    image_every : int
+        Render the pair of every n-th frame only.
     sensor : SensorSpec, optional
         The range sensor.
     world_spacing : float
@@ -219,7 +222,7 @@ def simulate(
             "imu": {"roll": roll + rng.normal(0, sensor.imu_noise),
                     "pitch": pitch + rng.normal(0, sensor.imu_noise)},
         }
-        if images:
+        if images and i % max(1, int(image_every)) == 0:
             left, right, _ = render_stereo(view, pose6, calib, textures, seed=seed * 100003 + i,
                                            color=True)
             for side, img in (("left", left), ("right", right)):
