@@ -281,8 +281,9 @@ def grid_points(
     pts = _as_cloud(points)
     rot = None
     if roll is not None or pitch is not None:
-        rot = rotation_matrix(_check_angle("roll", roll or 0.0),
-                              _check_angle("pitch", pitch or 0.0))
+        rot = rotation_matrix(
+            _check_angle("roll", roll or 0.0), _check_angle("pitch", pitch or 0.0)
+        )
     angle = 0.0
     offset = None
     if level:
@@ -442,5 +443,4 @@ def extract_patch(
     level : bool
         Level the patch on its own plane (see :func:`grid_points`).
     """
-    return grid_points(points, spec, roll=roll, pitch=pitch, min_points=min_points,
-                       level=level)
+    return grid_points(points, spec, roll=roll, pitch=pitch, min_points=min_points, level=level)

@@ -51,8 +51,10 @@ class HeightField:
     def xy(self) -> tuple[np.ndarray, np.ndarray]:
         """World x (per column) and y (per row) of the cell centres, in m."""
         ny, nx = self.heights.shape
-        return (self.origin[0] + self.spacing * np.arange(nx),
-                self.origin[1] + self.spacing * np.arange(ny))
+        return (
+            self.origin[0] + self.spacing * np.arange(nx),
+            self.origin[1] + self.spacing * np.arange(ny),
+        )
 
     def sample(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Bilinear height in m at world points (x, y) in m; NaN outside."""

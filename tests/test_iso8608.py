@@ -7,8 +7,16 @@ from rough_map import iso8608
 from rough_map.errors import InputError
 
 # Paper, Table 1: rms in mm over 2 pi / 0.896 ... pi / 0.008 rad/m.
-TABLE_1 = {"A": 0.37, "B": 0.75, "C": 1.50, "D": 2.99, "E": 5.99, "F": 11.98, "G": 23.95,
-           "H": 47.90}
+TABLE_1 = {
+    "A": 0.37,
+    "B": 0.75,
+    "C": 1.50,
+    "D": 2.99,
+    "E": 5.99,
+    "F": 11.98,
+    "G": 23.95,
+    "H": 47.90,
+}
 
 
 @pytest.mark.parametrize("cls", list(TABLE_1))
@@ -34,7 +42,7 @@ def test_band_rms_general_waviness_matches_numerical_integral():
 
     lo, hi = iso8608.waveband(0.896, 0.008)
     for w in (-1.0, -2.4, -3.0):
-        expected = np.sqrt(quad(lambda om: 1e-4 * om**w, lo, hi, limit=200)[0])
+        expected = np.sqrt(quad(lambda om, w=w: 1e-4 * om**w, lo, hi, limit=200)[0])
         assert iso8608.band_rms(1e-4, 0.896, 0.008, w) == pytest.approx(expected, rel=1e-6)
 
 

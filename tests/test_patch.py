@@ -19,24 +19,28 @@ from rough_map.psd import patch_roughness
 def test_eq11_matrix():
     phi, theta = math.radians(4.0), math.radians(3.0)  # pitch, roll
     c, s = math.cos, math.sin
-    eq11 = np.array([
-        [c(phi), s(phi) * s(theta), s(phi) * c(theta)],
-        [0, c(theta), -s(theta)],
-        [-s(phi), c(phi) * s(theta), c(phi) * c(theta)],
-    ])
+    eq11 = np.array(
+        [
+            [c(phi), s(phi) * s(theta), s(phi) * c(theta)],
+            [0, c(theta), -s(theta)],
+            [-s(phi), c(phi) * s(theta), c(phi) * c(theta)],
+        ]
+    )
     np.testing.assert_allclose(rotation_matrix(roll=theta, pitch=phi), eq11, atol=1e-15)
 
 
 def test_grid_means_and_geometry():
     spec = PatchSpec(ahead=1.0, size=0.064, spacing=0.008)  # 8 x 8 cells
     assert spec.n == 8
-    pts = np.array([
-        [spec.x0 + 0.004, spec.y0 + 0.004, 1.0],  # cell [0, 0]
-        [spec.x0 + 0.005, spec.y0 + 0.003, 3.0],  # cell [0, 0]
-        [spec.x0 + 0.028, spec.y0 + 0.012, 5.0],  # row 1 (y), column 3 (x)
-        [spec.x0 - 0.001, 0.0, 9.0],  # just outside (near edge)
-        [5.0, 5.0, 9.0],  # far outside
-    ])
+    pts = np.array(
+        [
+            [spec.x0 + 0.004, spec.y0 + 0.004, 1.0],  # cell [0, 0]
+            [spec.x0 + 0.005, spec.y0 + 0.003, 3.0],  # cell [0, 0]
+            [spec.x0 + 0.028, spec.y0 + 0.012, 5.0],  # row 1 (y), column 3 (x)
+            [spec.x0 - 0.001, 0.0, 9.0],  # just outside (near edge)
+            [5.0, 5.0, 9.0],  # far outside
+        ]
+    )
     g = grid_points(pts, spec, min_points=1)
     assert g.heights[0, 0] == pytest.approx(2.0)
     assert g.heights[1, 3] == pytest.approx(5.0)
@@ -46,8 +50,16 @@ def test_grid_means_and_geometry():
 
 def test_non_finite_points_are_ignored():
     spec = PatchSpec(size=0.064)
-    pts = np.array([[1.0, 0.0, 0.1], [np.nan, 0.0, 5.0], [1.0, np.nan, 5.0],
-                    [1.0, 0.0, np.nan], [np.inf, 0.0, 1.0], [1.0, 0.001, 0.3]])
+    pts = np.array(
+        [
+            [1.0, 0.0, 0.1],
+            [np.nan, 0.0, 5.0],
+            [1.0, np.nan, 5.0],
+            [1.0, 0.0, np.nan],
+            [np.inf, 0.0, 1.0],
+            [1.0, 0.001, 0.3],
+        ]
+    )
     g = grid_points(pts, spec, min_points=1)
     assert g.n_points == 2
     assert np.nanmax(g.heights) == pytest.approx(0.2)
@@ -87,8 +99,9 @@ def test_tilt_is_a_small_effect_and_compensation_removes_it(
         vehicle = world @ rotation_matrix(roll, pitch)  # the same points from a tilted rover
         truth = patch_roughness(grid_points(world).heights, 0.008, gridding="cell_mean")
         raw = patch_roughness(grid_points(vehicle).heights, 0.008, gridding="cell_mean")
-        comp = patch_roughness(grid_points(vehicle, roll=roll, pitch=pitch).heights, 0.008,
-                               gridding="cell_mean")
+        comp = patch_roughness(
+            grid_points(vehicle, roll=roll, pitch=pitch).heights, 0.008, gridding="cell_mean"
+        )
         err_r.append(abs(raw.R / truth.R - 1))
         err_w.append(abs(raw.w / truth.w - 1))
         assert comp.R == pytest.approx(truth.R, rel=1e-3)
@@ -123,8 +136,12 @@ def test_too_few_points_in_the_patch():
 
 @pytest.mark.parametrize(
     ("kwargs", "match"),
-    [({"spacing": 0.0}, "spacing"), ({"size": -1.0}, "size"), ({"ahead": float("nan")}, "ahead"),
-     ({"size": 0.02}, "at least 8")],
+    [
+        ({"spacing": 0.0}, "spacing"),
+        ({"size": -1.0}, "size"),
+        ({"ahead": float("nan")}, "ahead"),
+        ({"size": 0.02}, "at least 8"),
+    ],
 )
 def test_bad_specs(kwargs, match):
     with pytest.raises(InputError, match=match):

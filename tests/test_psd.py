@@ -17,8 +17,9 @@ def test_matches_scipy_welch():
     rng = np.random.default_rng(1)
     h = rng.standard_normal((7, N)) * 1e-3 + np.linspace(0, 0.05, N)
     omega, p = psd.profile_psd(h, B)
-    f, ref = signal.welch(signal.detrend(h, axis=1), fs=1 / B, window="hann", nperseg=N,
-                          detrend=False)
+    f, ref = signal.welch(
+        signal.detrend(h, axis=1), fs=1 / B, window="hann", nperseg=N, detrend=False
+    )
     np.testing.assert_allclose(omega, 2 * np.pi * f[1:])
     np.testing.assert_allclose(p, ref[:, 1:] / (2 * np.pi), rtol=2e-4)
 
@@ -52,10 +53,12 @@ def test_round_trip_surfaces(cls, w):
     """Median over 20 patches cut from larger surfaces: ln R within 0.15, w within 0.05."""
     phi0 = iso8608.PHI0[cls]
     seed = 1000 * "BCDEFG".index(cls) + int(-10 * w)
-    patches = np.stack([
-        iso8608.synthesize_surface((4 * N, 2 * N), B, phi0, w, seed=seed + i)[:N, :N]
-        for i in range(20)
-    ])
+    patches = np.stack(
+        [
+            iso8608.synthesize_surface((4 * N, 2 * N), B, phi0, w, seed=seed + i)[:N, :N]
+            for i in range(20)
+        ]
+    )
     est = psd.patch_roughness(patches, B)
     assert abs(np.median([math.log(e.R / phi0) for e in est])) < 0.15
     assert abs(np.median([e.w - w for e in est])) < 0.05
@@ -65,16 +68,18 @@ def test_round_trip_surfaces(cls, w):
 @pytest.mark.parametrize("cls", ["A", "D", "H"])
 def test_round_trip_profiles(cls, w):
     phi0 = iso8608.PHI0[cls]
-    h = np.stack([iso8608.synthesize_profile(N, B, phi0, w, n_profiles=N, seed=s)
-                  for s in range(10)])
+    h = np.stack(
+        [iso8608.synthesize_profile(N, B, phi0, w, n_profiles=N, seed=s) for s in range(10)]
+    )
     est = psd.patch_roughness(h, B)
     assert abs(np.median([math.log(e.R / phi0) for e in est])) < 0.1
     assert abs(np.median([e.w - w for e in est])) < 0.04
 
 
 def test_paper_method_is_biased_low_by_about_gamma():
-    h = np.stack([iso8608.synthesize_profile(N, B, 64e-6, -2.0, n_profiles=N, seed=s)
-                  for s in range(10)])
+    h = np.stack(
+        [iso8608.synthesize_profile(N, B, 64e-6, -2.0, n_profiles=N, seed=s) for s in range(10)]
+    )
     paper = psd.patch_roughness(h, B, method="paper")
     unbiased = psd.patch_roughness(h, B)
     gap = np.median([math.log(u.R / p.R) for u, p in zip(unbiased, paper, strict=True)])
@@ -102,8 +107,9 @@ def test_uncertainty_is_the_profile_spread():
 
 
 def test_welch_segments_are_unbiased_too():
-    h = np.stack([iso8608.synthesize_profile(2 * N, B, 64e-6, -2.4, n_profiles=N, seed=s)
-                  for s in range(10)])
+    h = np.stack(
+        [iso8608.synthesize_profile(2 * N, B, 64e-6, -2.4, n_profiles=N, seed=s) for s in range(10)]
+    )
     est = psd.patch_roughness(h, B, nperseg=N)
     assert abs(np.median([math.log(e.R / 64e-6) for e in est])) < 0.15
     assert abs(np.median([e.w + 2.4 for e in est])) < 0.06
@@ -131,8 +137,9 @@ def test_cell_mean_gridding_is_corrected():
 def test_noise_floor_subtraction_moves_back_to_the_truth():
     rng = np.random.default_rng(3)
     phi0, w = iso8608.PHI0["B"], -2.0
-    clean = np.stack([iso8608.synthesize_surface((2 * N, 2 * N), B, phi0, w, seed=s)[:N, :N]
-                      for s in range(10)])
+    clean = np.stack(
+        [iso8608.synthesize_surface((2 * N, 2 * N), B, phi0, w, seed=s)[:N, :N] for s in range(10)]
+    )
     sigma = 1.0e-4  # noise of a cell mean, m
     noisy = clean + rng.normal(0, sigma, clean.shape)
     floor = sigma**2 * B / math.pi
@@ -214,8 +221,7 @@ def test_bad_options():
     with pytest.raises(InputError, match="gridding"):
         psd.patch_roughness(h, B, gridding="nearest")
     with pytest.raises(InputError, match="noverlap"):
-        psd.patch_roughness(np.random.default_rng(0).random((10, 64)), B, nperseg=16,
-                            noverlap=16)
+        psd.patch_roughness(np.random.default_rng(0).random((10, 64)), B, nperseg=16, noverlap=16)
     with pytest.raises(PatchError, match="need at least 3"):
         psd.patch_roughness(np.random.default_rng(0).random((2, 64)), B)
 
@@ -223,5 +229,6 @@ def test_bad_options():
 def test_shipped_tables_are_up_to_date():
     with np.load(psd._SHIPPED_TABLES) as data:
         for g in psd.GRIDDINGS:
-            np.testing.assert_allclose(data[f"hann_112_{g}"],
-                                       psd._compute_leakage_table(112, "hann", g), atol=1e-9)
+            np.testing.assert_allclose(
+                data[f"hann_112_{g}"], psd._compute_leakage_table(112, "hann", g), atol=1e-9
+            )

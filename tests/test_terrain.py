@@ -15,12 +15,18 @@ N, B = 112, 0.008
 
 @pytest.mark.parametrize(
     ("name", "cls", "w"),
-    [("concrete", "C", -2.0), ("dirt_road", "D", -2.2), ("gravel", "E", -2.4),
-     ("compact_soil", "E", -2.4), ("ploughed_soil", "F", -2.59)],
+    [
+        ("concrete", "C", -2.0),
+        ("dirt_road", "D", -2.2),
+        ("gravel", "E", -2.4),
+        ("compact_soil", "E", -2.4),
+        ("ploughed_soil", "F", -2.59),
+    ],
 )
 def test_surfaces_match_the_paper(name, cls, w):
-    stack = np.stack([terrain.generate(name, (N, 3 * N), B, seed=s)[:, N : 2 * N]
-                      for s in range(12)])
+    stack = np.stack(
+        [terrain.generate(name, (N, 3 * N), B, seed=s)[:, N : 2 * N] for s in range(12)]
+    )
     est = patch_roughness(stack, B)
     r = math.exp(np.mean([math.log(e.R) for e in est]))
     assert iso_class(r) == cls

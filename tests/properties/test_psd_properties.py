@@ -19,8 +19,12 @@ def _patch(seed, w=-2.3):
 
 
 @settings(max_examples=25, deadline=None)
-@given(seed=seeds, offset=st.floats(-100, 100), slope=st.floats(-0.3, 0.3),
-       lateral=st.floats(-0.3, 0.3))
+@given(
+    seed=seeds,
+    offset=st.floats(-100, 100),
+    slope=st.floats(-0.3, 0.3),
+    lateral=st.floats(-0.3, 0.3),
+)
 def test_planes_do_not_change_the_estimate(seed, offset, slope, lateral):
     h = _patch(seed)
     x = np.arange(64) * B
@@ -52,8 +56,13 @@ def test_same_seed_same_answer(seed, w):
 @given(seed=seeds, dz=st.floats(-50, 50), dy=st.floats(-0.004, 0.004))
 def test_cloud_translation_in_z_is_invisible(seed, dz, dy):
     rng = np.random.default_rng(seed)
-    pts = np.column_stack([rng.uniform(0.5, 1.5, 60_000), rng.uniform(-0.5, 0.5, 60_000),
-                           rng.normal(0, 0.003, 60_000)])
+    pts = np.column_stack(
+        [
+            rng.uniform(0.5, 1.5, 60_000),
+            rng.uniform(-0.5, 0.5, 60_000),
+            rng.normal(0, 0.003, 60_000),
+        ]
+    )
     a = grid_points(pts)
     b = grid_points(pts + [0.0, 0.0, dz])
     np.testing.assert_allclose(b.heights - dz, a.heights, atol=1e-9)

@@ -1,0 +1,415 @@
+"""File schemas as pydantic models, and safe loading of YAML/JSON into them.
+
+The JSON Schemas in ``data_schema/`` are generated from the models here, by
+:func:`write_schemas` or ``rough-map schema --out data_schema``; do not edit them by hand.
+
+A traverse (see :mod:`rough_map.io.traverse`) is described by :class:`TraverseSpec`::
+
+    schema_version: "1.0"
+    name: field_a
+    crs: local                      # or "EPSG:32633", 32633, {code: local, origin: {...}}
+    frames:
+      - t: 0.0                      # s
+        pose: {x: 0.0, y: 0.0, yaw: 0.1}   # m, rad; z, roll, pitch default to 0
+        cloud: clouds/000000.npy    # relative to the traverse folder
+        label: gravel
+
+Every model forbids unknown keys, so a typo (``lable:``) is an error rather than ignored;
+only ``metadata`` is free-form.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path, PurePosixPath, PureWindowsPath
+from typing import Annotated, Any, Literal
+
+import numpy as np
+import yaml
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_serializer,
+    field_validator,
+    model_validator,
+)
+from pydantic_core import PydanticCustomError
+
+from rough_map.errors import FileFormatError, SchemaError
+
+SCHEMA_VERSION = "1.0"
+"""Version of the traverse format written by this release."""
+
+_JSON_SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+def _relative_path(value: str) -> str:
+    if PurePosixPath(value).is_absolute() or PureWindowsPath(value).is_absolute():
+        raise ValueError(f"{value!r} must be a path relative to the traverse folder")
+    return value
+
+
+RelativePath = Annotated[
+    str,
+    Field(min_length=1, description="Path relative to the traverse folder (use '/')."),
+    AfterValidator(_relative_path),
+]
+
+
+class Pose(_Model):
+    """Pose of the vehicle in the world frame.
+
+    ``p_world = Rz(yaw) @ Ry(pitch) @ Rx(roll) @ p_vehicle + (x, y, z)``, with the vehicle
+    frame x forward, y left, z up.
+    """
+
+    x: float = Field(description="Position east (or local x), m.")
+    y: float = Field(description="Position north (or local y), m.")
+    z: float = Field(0.0, description="Position up, m.")
+    roll: float = Field(0.0, description="Rotation about the vehicle x axis, rad.")
+    pitch: float = Field(0.0, description="Rotation about the vehicle y axis, rad.")
+    yaw: float = Field(0.0, description="Heading, rotation about the world z axis, rad.")
+
+    def matrix(self) -> np.ndarray:
+        """4x4 homogeneous transform vehicle -> world (rotation, translation in m)."""
+        from scipy.spatial.transform import Rotation
+
+        transform = np.eye(4)
+        # Extrinsic x-y-z rotations compose as Rz @ Ry @ Rx.
+        transform[:3, :3] = Rotation.from_euler(
+            "xyz", [self.roll, self.pitch, self.yaw]
+        ).as_matrix()
+        transform[:3, 3] = [self.x, self.y, self.z]
+        return transform
+
+
+class ImuAttitude(_Model):
+    """Attitude of the vehicle measured by an IMU (gravity reference)."""
+
+    roll: float = Field(description="Roll, rad.")
+    pitch: float = Field(description="Pitch, rad.")
+
+
+class GeodeticOrigin(_Model):
+    """Geodetic position of the origin of a local world frame (WGS84)."""
+
+    lat: float = Field(ge=-90.0, le=90.0, description="Latitude, degrees north.")
+    lon: float = Field(ge=-180.0, le=180.0, description="Longitude, degrees east.")
+    alt: float = Field(0.0, description="Height above the WGS84 ellipsoid, m.")
+
+
+class Crs(_Model):
+    """Coordinate reference system of the world frame of a traverse."""
+
+    code: str = Field(
+        pattern=r"^(local|EPSG:[1-9][0-9]*)$",
+        description="'local' for a local metric frame, or 'EPSG:<code>' for a projected CRS.",
+    )
+    origin: GeodeticOrigin | None = Field(
+        None, description="Geodetic origin of a 'local' frame (x east, y north, z up)."
+    )
+
+    @model_validator(mode="after")
+    def _origin_only_local(self) -> Crs:
+        if self.origin is not None and self.code != "local":
+            raise ValueError("origin is only meaningful with crs 'local'")
+        return self
+
+    @property
+    def epsg(self) -> int | None:
+        """The EPSG code, or None for a local frame."""
+        return None if self.code == "local" else int(self.code.split(":")[1])
+
+
+def _crs_shorthand(value: object) -> object:
+    """Accept ``"local"``, ``"EPSG:32633"`` (any case) and ``32633`` for ``{code: ...}``."""
+    if isinstance(value, bool):
+        return value  # bool is an int; let validation reject it
+    if isinstance(value, int):
+        return {"code": f"EPSG:{value}"}
+    if isinstance(value, str):
+        code = value.strip()
+        if code.lower() == "local":
+            return {"code": "local"}
+        if code.upper().startswith("EPSG:") and code[5:].strip().isdigit():
+            return {"code": f"EPSG:{int(code[5:])}"}
+        raise ValueError(f"crs must be 'local', 'EPSG:<code>' or an EPSG integer; got {value!r}")
+    return value
+
+
+_CrsCode = Annotated[str, Field(pattern=r"^([Ll][Oo][Cc][Aa][Ll]|[Ee][Pp][Ss][Gg]:[0-9]+)$")]
+CrsField = Annotated[
+    Crs, BeforeValidator(_crs_shorthand, json_schema_input_type=_CrsCode | int | Crs)
+]
+
+
+class StereoCalibration(_Model):
+    """Intrinsics and extrinsics of a rectified stereo rig.
+
+    Images are rectified and row-aligned with one pinhole matrix; the right camera sits
+    ``baseline`` m along the left camera's +x axis. Camera frame: OpenCV (x right, y down,
+    z forward); vehicle frame: x forward, y left, z up.
+
+    Any object with these attributes validates (``from_attributes``), so the calibration
+    objects of :mod:`rough_map.io.stereo` can be put in a traverse as they are.
+    """
+
+    model_config = ConfigDict(from_attributes=True)
+
+    fx: float = Field(gt=0, description="Focal length along x, px.")
+    fy: float = Field(gt=0, description="Focal length along y, px.")
+    cx: float = Field(description="Principal point column, px (pixel centres at integers).")
+    cy: float = Field(description="Principal point row, px.")
+    width: int = Field(gt=0, description="Image width, px.")
+    height: int = Field(gt=0, description="Image height, px.")
+    baseline: float = Field(gt=0, description="Distance between the optical centres, m.")
+    camera_to_vehicle: list[list[float]] = Field(
+        description="4x4 transform, row-major: left-camera coordinates (m) -> vehicle (m)."
+    )
+
+    @field_validator("camera_to_vehicle")
+    @classmethod
+    def _rigid_transform(cls, value: list[list[float]]) -> list[list[float]]:
+        m = np.asarray(value, dtype=float)
+        if m.shape != (4, 4):
+            raise ValueError(f"camera_to_vehicle must be 4x4, got shape {m.shape}")
+        if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0]):
+            raise ValueError("camera_to_vehicle last row must be [0, 0, 0, 1]")
+        r = m[:3, :3]
+        if not np.allclose(r @ r.T, np.eye(3), atol=1e-5) or np.linalg.det(r) < 0:
+            raise ValueError("camera_to_vehicle rotation block is not a proper rotation")
+        return value
+
+    @model_validator(mode="after")
+    def _principal_point_inside(self) -> StereoCalibration:
+        if not (0 <= self.cx < self.width and 0 <= self.cy < self.height):
+            raise ValueError("principal point (cx, cy) must lie inside the image")
+        return self
+
+    def camera_to_vehicle_matrix(self) -> np.ndarray:
+        """The 4x4 transform left camera -> vehicle as an array (m)."""
+        return np.asarray(self.camera_to_vehicle, dtype=float)
+
+
+class FrameSpec(_Model):
+    """One capture along a traverse: time, vehicle pose and the sensor data taken there.
+
+    A frame has a point cloud, a rectified stereo pair, or both.
+    """
+
+    t: float = Field(description="Time, s (strictly increasing along the traverse).")
+    pose: Pose
+    cloud: RelativePath | None = Field(
+        None, description="Point cloud in the vehicle frame (m), any format read_cloud reads."
+    )
+    left: RelativePath | None = Field(None, description="Left rectified image.")
+    right: RelativePath | None = Field(None, description="Right rectified image.")
+    label: str | None = Field(None, min_length=1, description="Terrain class name.")
+    imu: ImuAttitude | None = None
+
+    @model_validator(mode="after")
+    def _has_data(self) -> FrameSpec:
+        if (self.left is None) != (self.right is None):
+            raise ValueError("left and right images come together")
+        if self.cloud is None and self.left is None:
+            raise ValueError("a frame needs a cloud or a left/right image pair")
+        return self
+
+
+class TraverseSpec(_Model):
+    """Content of ``traverse.json``/``traverse.yaml``: a run of a vehicle over terrain."""
+
+    model_config = ConfigDict(title="Traverse")
+
+    schema_version: Literal["1.0"] = Field(description="Version of this format.")
+    name: str = Field(min_length=1, description="Name of the traverse.")
+    crs: CrsField = Field(Crs(code="local"), description="CRS of the world frame.")
+    calibration: StereoCalibration | None = Field(
+        None, description="Stereo rig (intrinsics in px, baseline in m, camera_to_vehicle)."
+    )
+    height_field: RelativePath | None = Field(
+        None, description="Ground-truth height field (.npz), e.g. from a simulator."
+    )
+    metadata: dict[str, Any] = Field(
+        default_factory=dict, description="Free-form information (source, ground truth, ...)."
+    )
+    frames: list[FrameSpec] = Field(min_length=1)
+
+    @field_validator("frames")
+    @classmethod
+    def _times_increase(cls, frames: list[FrameSpec]) -> list[FrameSpec]:
+        for i in range(1, len(frames)):
+            if not frames[i].t > frames[i - 1].t:
+                raise PydanticCustomError(
+                    "time_order",
+                    "time {t} s is not after frames[{previous}].t = {t_previous} s",
+                    {
+                        "frame_index": i,
+                        "t": frames[i].t,
+                        "previous": i - 1,
+                        "t_previous": frames[i - 1].t,
+                    },
+                )
+        return frames
+
+    @field_serializer("crs")
+    def _crs_short(self, crs: Crs) -> str | dict[str, Any]:
+        return crs.code if crs.origin is None else crs.model_dump(mode="json", exclude_none=True)
+
+
+SCHEMAS: dict[str, type[BaseModel]] = {"traverse": TraverseSpec}
+"""Models whose JSON Schema is published in ``data_schema/<name>.schema.json``."""
+
+
+# --------------------------------------------------------------------------------------------
+# Loading
+
+
+def load_mapping(path: str | Path) -> dict[str, Any]:
+    """Read a JSON or YAML file whose top level is a mapping.
+
+    YAML is read with ``yaml.safe_load``: tags that would build Python objects are refused.
+
+    Parameters
+    ----------
+    path : str or Path
+        A ``.json``, ``.yaml`` or ``.yml`` file.
+
+    Returns
+    -------
+    dict
+        The parsed mapping.
+
+    Raises
+    ------
+    FileFormatError
+        Missing or unreadable file, unknown suffix, or a JSON/YAML syntax error (with its
+        line and column).
+    SchemaError
+        The top level is not a mapping.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in (".json", ".yaml", ".yml"):
+        raise FileFormatError(path, f"expected .json, .yaml or .yml, got {suffix!r}", "suffix")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        raise FileFormatError(path, f"cannot read: {err}") from err
+    try:
+        data = json.loads(text) if suffix == ".json" else yaml.safe_load(text)
+    except json.JSONDecodeError as err:
+        raise FileFormatError(
+            path, f"invalid JSON at line {err.lineno}, column {err.colno}: {err.msg}"
+        ) from err
+    except yaml.YAMLError as err:
+        raise FileFormatError(path, "invalid YAML: " + " ".join(str(err).split())) from err
+    if not isinstance(data, dict):
+        raise SchemaError(path, f"expected a mapping at the top level, got {type(data).__name__}")
+    return data
+
+
+def format_location(loc: tuple[int | str, ...] | list[int | str]) -> str:
+    """``("frames", 3, "pose", "yaw")`` -> ``"frames[3].pose.yaw"``."""
+    out = ""
+    for part in loc:
+        out += f"[{part}]" if isinstance(part, int) else f".{part}" if out else str(part)
+    return out or "(top level)"
+
+
+def schema_error(path: str | Path, err: ValidationError, max_shown: int = 3) -> SchemaError:
+    """Turn a pydantic ValidationError into a one-line :class:`SchemaError`.
+
+    The message reads ``<path>: frames[3].pose.x: Field required; ...``: the location of each
+    problem in the file, then pydantic's explanation. ``SchemaError.field`` is the location
+    of the first problem.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file that was validated.
+    err : pydantic.ValidationError
+        The validation error.
+    max_shown : int
+        How many problems to spell out; the rest are counted.
+    """
+    problems: list[tuple[str, str]] = []
+    for item in err.errors(include_url=False):
+        loc = list(item["loc"])
+        ctx = item.get("ctx") or {}
+        if item["type"] == "time_order":
+            loc += [ctx["frame_index"], "t"]
+        message = item["msg"].removeprefix("Value error, ")
+        if item["type"] == "extra_forbidden":
+            message = "unknown field (a typo?)"
+        problems.append((format_location(loc), message))
+    text = "; ".join(f"{where}: {what}" for where, what in problems[:max_shown])
+    if len(problems) > max_shown:
+        text += f" (and {len(problems) - max_shown} more problems)"
+    error = SchemaError(path, text)
+    error.field = problems[0][0] if problems else None
+    return error
+
+
+def load_model(path: str | Path, model: type[BaseModel]) -> Any:
+    """Load a JSON/YAML file and validate it against ``model``.
+
+    Raises
+    ------
+    FileFormatError
+        The file cannot be read or parsed (see :func:`load_mapping`).
+    SchemaError
+        The content does not follow the model; the message names the field.
+    """
+    data = load_mapping(path)
+    try:
+        return model.model_validate(data)
+    except ValidationError as err:
+        raise schema_error(path, err) from err
+
+
+# --------------------------------------------------------------------------------------------
+# JSON Schemas
+
+
+def schema_texts() -> dict[str, str]:
+    """The JSON Schema text of each model in :data:`SCHEMAS`, by file name."""
+    texts = {}
+    for name, model in SCHEMAS.items():
+        schema = {"$schema": _JSON_SCHEMA_DIALECT, **model.model_json_schema()}
+        texts[f"{name}.schema.json"] = json.dumps(schema, indent=2, ensure_ascii=False) + "\n"
+    return texts
+
+
+def write_schemas(out_dir: str | Path) -> list[Path]:
+    """Write ``<name>.schema.json`` for every model in :data:`SCHEMAS`.
+
+    Parameters
+    ----------
+    out_dir : str or Path
+        Folder to write into (created if needed), normally ``data_schema/``.
+
+    Returns
+    -------
+    list of Path
+        The files written.
+    """
+    from rough_map.io.pointcloud import atomic_output
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for file_name, text in schema_texts().items():
+        target = out_dir / file_name
+        with atomic_output(target) as tmp:
+            tmp.write_text(text, encoding="utf-8")
+        written.append(target)
+    return written

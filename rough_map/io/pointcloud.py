@@ -1,0 +1,773 @@
+"""Point clouds from files, and back.
+
+Every reader returns the points as a float64 array of shape (N, 3): x, y, z in m, in the
+frame the file was written in. Rows with a NaN or infinite coordinate are dropped (logged at
+debug level); a file without a single finite point is an error. Readers and writers are found
+by file suffix in the registries ``READERS`` and ``WRITERS``:
+
+=================  =============================================================
+suffix             content
+=================  =============================================================
+.npy               (N, >=3) numeric array, or a structured array with x, y, z
+.csv .xyz .txt     text, comma/semicolon/whitespace separated, optional header
+.ply .pcd          read and written with open3d
+.las .laz          read and written with laspy (.laz needs the lazrs backend)
+.bin               KITTI velodyne scan: float32 x, y, z, reflectance (read only)
+=================  =============================================================
+
+Writers replace the target atomically: they write a temporary file in the same folder and
+``os.replace`` it, so a reader never sees half a file.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import uuid
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from rough_map.errors import FileFormatError, InputError
+
+log = logging.getLogger(__name__)
+
+PathLike = str | os.PathLike[str]
+
+
+class CloudReader(Protocol):
+    """Reads one file into an array whose first three columns are x, y, z in m."""
+
+    def __call__(self, path: Path) -> np.ndarray: ...
+
+
+class CloudWriter(Protocol):
+    """Writes an (N, 3) float64 array of x, y, z in m to ``path`` (a temporary name)."""
+
+    def __call__(self, path: Path, points: np.ndarray) -> None: ...
+
+
+# --------------------------------------------------------------------------------------------
+# Public API
+
+
+def read_cloud(path: PathLike) -> np.ndarray:
+    """Read a point cloud file.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        A file with one of the suffixes in ``READERS`` (case-insensitive).
+
+    Returns
+    -------
+    ndarray, shape (N, 3), float64
+        x, y, z in m, finite, N >= 1. LAS/LAZ coordinates in feet are converted to m
+        (see :func:`read_las`).
+
+    Raises
+    ------
+    FileFormatError
+        Unknown suffix, missing or empty file, truncated or corrupt content, wrong shape or
+        dtype, or no finite point.
+    """
+    path = Path(path)
+    reader = READERS.get(path.suffix.lower())
+    if reader is None:
+        known = ", ".join(sorted(READERS))
+        raise FileFormatError(
+            path, f"unknown point-cloud suffix {path.suffix!r}; known: {known}", field="suffix"
+        )
+    _check_readable(path)
+    return _finite_xyz(path, reader(path))
+
+
+def write_cloud(path: PathLike, points: np.ndarray) -> Path:
+    """Write a point cloud, replacing ``path`` atomically.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        Target file; its suffix (.npy, .csv, .xyz, .txt, .ply, .pcd, .las, .laz) picks the
+        format. The folder must exist.
+    points : array_like, shape (N, 3)
+        x, y, z in m. LAS/LAZ store them as integers of 0.1 mm (scale 1e-4 m), so the cloud
+        must span less than about 400 km and be finite.
+
+    Returns
+    -------
+    Path
+        The file written.
+
+    Raises
+    ------
+    InputError
+        ``points`` is not a non-empty numeric (N, 3) array.
+    FileFormatError
+        Unknown suffix, missing folder, or the backend could not write the file.
+    """
+    path = Path(path)
+    writer = WRITERS.get(path.suffix.lower())
+    if writer is None:
+        known = ", ".join(sorted(WRITERS))
+        raise FileFormatError(
+            path, f"cannot write suffix {path.suffix!r}; known: {known}", field="suffix"
+        )
+    pts = np.asarray(points)
+    if pts.ndim != 2 or pts.shape[1] != 3 or pts.dtype.kind not in "fiu" or len(pts) == 0:
+        raise InputError(
+            f"points must be a non-empty numeric (N, 3) array of x, y, z in m; "
+            f"got shape {pts.shape} and dtype {pts.dtype}"
+        )
+    with atomic_output(path) as tmp:
+        writer(tmp, pts.astype(np.float64, copy=False))
+    log.debug("wrote %d points to %s", len(pts), path)
+    return path
+
+
+@contextmanager
+def atomic_output(path: PathLike) -> Iterator[Path]:
+    """Yield a temporary path next to ``path``; on success move it onto ``path``.
+
+    The temporary name keeps the suffix of ``path`` (backends such as open3d and laspy pick
+    the format from it) and starts with a dot. On error the temporary file is removed and
+    ``path`` is left untouched.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        The final file. Its folder must exist.
+
+    Yields
+    ------
+    Path
+        Where to write.
+    """
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise FileFormatError(path, f"cannot write: folder {path.parent} does not exist")
+    tmp = path.with_name(f".{path.stem}.{uuid.uuid4().hex[:12]}.tmp{path.suffix}")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+@dataclass(frozen=True)
+class LasCrs:
+    """Coordinate reference system of a LAS file, read without pyproj.
+
+    Attributes
+    ----------
+    wkt : str or None
+        OGC WKT of the CRS (from the WKT VLR or EVLR), if the file has one.
+    epsg : int or None
+        EPSG code, from an ``AUTHORITY``/``ID`` of the WKT or else from the GeoTIFF keys
+        (ProjectedCSTypeGeoKey, or GeographicTypeGeoKey for a geographic CRS).
+    horizontal_unit_m : float
+        Length in m of one unit of the file's x and y.
+    vertical_unit_m : float
+        Length in m of one unit of the file's z. When the file gives no vertical unit the
+        horizontal one is assumed.
+    unit_name : str
+        Name of the horizontal unit as written in the file (``"metre"`` if none).
+    """
+
+    wkt: str | None
+    epsg: int | None
+    horizontal_unit_m: float
+    vertical_unit_m: float
+    unit_name: str
+
+
+@dataclass(frozen=True, eq=False)
+class LasCloud:
+    """Points of a LAS/LAZ file, in m, with their classification and CRS.
+
+    Attributes
+    ----------
+    points : ndarray, shape (N, 3), float64
+        x, y, z in m: the file coordinates multiplied by the CRS units (a file in feet is
+        converted). Use :meth:`crs_coordinates` to get the numbers of the CRS back.
+    classification : ndarray, shape (N,), uint8
+        ASPRS class per point (2 = ground).
+    crs : LasCrs or None
+        None when the file has no CRS record (then units are taken as m).
+    """
+
+    points: np.ndarray
+    classification: np.ndarray
+    crs: LasCrs | None
+
+    def crs_coordinates(self) -> np.ndarray:
+        """Points in the units of the CRS (e.g. US survey feet), shape (N, 3)."""
+        if self.crs is None:
+            return self.points.copy()
+        scale = [self.crs.horizontal_unit_m, self.crs.horizontal_unit_m, self.crs.vertical_unit_m]
+        return self.points / np.asarray(scale)
+
+
+def read_las(path: PathLike) -> LasCloud:
+    """Read a LAS or LAZ file with its classification and coordinate reference system.
+
+    The CRS is read from the WKT (E)VLR and the GeoTIFF key VLR directly, so pyproj is not
+    needed. Linear units come from the WKT ``UNIT``/``LENGTHUNIT`` or else from the GeoTIFF
+    keys ProjLinearUnitsGeoKey and VerticalUnitsGeoKey.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        A ``.las`` or ``.laz`` file.
+
+    Returns
+    -------
+    LasCloud
+        Points in m (converted from the file's linear unit), classes and CRS.
+
+    Raises
+    ------
+    FileFormatError
+        Missing, empty, truncated or corrupt file; a geographic CRS (coordinates in degrees,
+        which cannot be taken as m); or no points.
+    """
+    import laspy
+
+    path = Path(path)
+    _check_readable(path)
+    try:
+        with laspy.open(path) as reader:
+            expected = reader.header.point_count
+            las = reader.read()
+        xyz = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])
+        classification = np.asarray(las.classification, dtype=np.uint8)
+    except _las_errors() as err:
+        raise FileFormatError(
+            path, f"not a readable LAS/LAZ file (truncated or corrupt?): {err}"
+        ) from err
+    if len(xyz) != expected:
+        raise FileFormatError(
+            path, f"truncated: {len(xyz)} of the {expected} points in the header", "points"
+        )
+    if len(xyz) == 0:
+        raise FileFormatError(path, "the file holds no points", field="points")
+    vlrs = list(las.header.vlrs) + list(getattr(las.header, "evlrs", None) or [])
+    crs = _las_crs(path, vlrs)
+    if crs is not None and (crs.horizontal_unit_m != 1.0 or crs.vertical_unit_m != 1.0):
+        log.info(
+            "%s: coordinates in %s converted to m (x, y * %.10g, z * %.10g)",
+            path,
+            crs.unit_name,
+            crs.horizontal_unit_m,
+            crs.vertical_unit_m,
+        )
+        xyz *= np.array([crs.horizontal_unit_m, crs.horizontal_unit_m, crs.vertical_unit_m])
+    return LasCloud(points=xyz, classification=classification, crs=crs)
+
+
+def _las_errors() -> tuple[type[BaseException], ...]:
+    """Exceptions that laspy and its LAZ backend raise on a bad file."""
+    import laspy
+
+    errors: tuple[type[BaseException], ...] = (
+        laspy.errors.LaspyException,
+        ValueError,
+        OSError,
+        EOFError,
+    )
+    try:
+        import lazrs
+    except ImportError:
+        return errors
+    return (*errors, lazrs.LazrsError)
+
+
+def read_kitti_poses(path: PathLike) -> np.ndarray:
+    """Read a KITTI odometry ``poses.txt``.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        Text file, one pose per line: the 12 numbers of a 3×4 matrix, row-major.
+
+    Returns
+    -------
+    ndarray, shape (N, 4, 4), float64
+        Homogeneous transforms (rotation, translation in m), last row ``[0, 0, 0, 1]``.
+
+    Raises
+    ------
+    FileFormatError
+        Missing or empty file, non-numeric text, or not 12 numbers per line.
+    """
+    path = Path(path)
+    _check_readable(path)
+    rows = _loadtxt(path, delimiter=None, skiprows=0, usecols=None)
+    if rows.size == 0:
+        raise FileFormatError(path, "the file holds no poses", field="poses")
+    if rows.shape[1] != 12:
+        raise FileFormatError(
+            path, f"expected 12 numbers (a 3x4 matrix) per line, got {rows.shape[1]}", "columns"
+        )
+    poses = np.zeros((len(rows), 4, 4))
+    poses[:, :3, :] = rows.reshape(-1, 3, 4)
+    poses[:, 3, 3] = 1.0
+    return poses
+
+
+# --------------------------------------------------------------------------------------------
+# Readers
+
+
+def _check_readable(path: Path) -> None:
+    if not path.exists():
+        raise FileFormatError(path, "no such file")
+    if not path.is_file():
+        raise FileFormatError(path, "not a regular file")
+    if path.stat().st_size == 0:
+        raise FileFormatError(path, "the file is empty")
+
+
+def _read_npy(path: Path) -> np.ndarray:
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except (ValueError, EOFError, OSError) as err:
+        raise FileFormatError(path, f"not a readable .npy file (truncated?): {err}") from err
+    if not isinstance(arr, np.ndarray):  # an .npz archive renamed to .npy
+        arr.close()
+        raise FileFormatError(path, "this is an .npz archive, not an .npy array")
+    return arr
+
+
+_NUMBER = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$|^[+-]?(nan|inf|infinity)$", re.I)
+_LOADTXT_WHERE = re.compile(
+    r"could not convert string (?P<value>.*) to \w+ at row (?P<row>\d+), column (?P<column>\d+)"
+)
+
+
+def _read_text(path: Path) -> np.ndarray:
+    """x, y, z from a delimited text file; a header naming x, y, z picks those columns."""
+    first, line_no = "", 0
+    with path.open("r", encoding="utf-8", errors="replace") as fh:
+        for line_no, line in enumerate(fh):  # noqa: B007 - line_no is used after the loop
+            if line.strip() and not line.lstrip().startswith("#"):
+                first = line.strip()
+                break
+    delimiter = "," if "," in first else ";" if ";" in first else None
+    tokens = [t.strip().strip("\"'") for t in first.split(delimiter)]
+    has_header = not all(_NUMBER.match(t) for t in tokens if t)
+    usecols = None
+    if has_header:
+        names = [t.lstrip("/#").strip().lower() for t in tokens]
+        if {"x", "y", "z"} <= set(names):
+            usecols = [names.index(c) for c in "xyz"]
+    return _loadtxt(
+        path, delimiter=delimiter, skiprows=line_no + 1 if has_header else 0, usecols=usecols
+    )
+
+
+def _loadtxt(
+    path: Path, delimiter: str | None, skiprows: int, usecols: list[int] | None
+) -> np.ndarray:
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
+            return np.loadtxt(
+                path,
+                delimiter=delimiter,
+                comments="#",
+                skiprows=skiprows,
+                usecols=usecols,
+                ndmin=2,
+                dtype=np.float64,
+                encoding="utf-8",
+            )
+    except ValueError as err:  # includes UnicodeDecodeError
+        where = _LOADTXT_WHERE.search(str(err))
+        if where is None:
+            raise FileFormatError(path, f"not a table of numbers: {err}", field="text") from err
+        # numpy counts data rows from 0 (after header, comments, blank lines), columns from 1.
+        row, column = int(where["row"]) + 1, int(where["column"])
+        raise FileFormatError(
+            path,
+            f"not a table of numbers: {where['value']!r} in data row {row}, column {column}",
+            field=f"row {row}, column {column}",
+        ) from err
+
+
+def _read_open3d(path: Path) -> np.ndarray:
+    import open3d as o3d
+
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        cloud = o3d.t.io.read_point_cloud(str(path))
+    if "positions" not in cloud.point:
+        raise FileFormatError(
+            path, "open3d read no point positions (corrupt, truncated or empty file)", "positions"
+        )
+    positions = cloud.point.positions.numpy()
+    check = _ply_truncation if path.suffix.lower() == ".ply" else _pcd_truncation
+    if problem := check(path):
+        # open3d only warns on some truncated files and returns garbage for the missing points.
+        raise FileFormatError(path, problem, field="points")
+    return positions
+
+
+_PLY_TYPE_SIZES = {
+    **dict.fromkeys([b"char", b"uchar", b"int8", b"uint8"], 1),
+    **dict.fromkeys([b"short", b"ushort", b"int16", b"uint16"], 2),
+    **dict.fromkeys([b"int", b"uint", b"int32", b"uint32", b"float", b"float32"], 4),
+    **dict.fromkeys([b"double", b"float64"], 8),
+}
+
+
+def _ply_truncation(path: Path) -> str | None:
+    """Why a PLY file is shorter than its header says, or None if it is not (or unknown)."""
+    elements: list[list] = []  # [count, row size in bytes or None if it has list properties]
+    binary = True
+    with path.open("rb") as fh:
+        for line in fh:
+            words = line.split()
+            if words[:1] == [b"format"]:
+                binary = words[1:2] != [b"ascii"]
+            elif words[:1] == [b"element"] and len(words) == 3 and words[2].isdigit():
+                elements.append([int(words[2]), 0])
+            elif words[:1] == [b"property"] and elements and elements[-1][1] is not None:
+                size = _PLY_TYPE_SIZES.get(words[1]) if len(words) == 3 else None
+                elements[-1][1] = None if size is None else elements[-1][1] + size
+            elif words[:1] == [b"end_header"]:
+                break
+        else:
+            return "no end_header line"
+        data = fh.read()
+    if binary:
+        # Only the leading elements made of fixed-size properties have a known size.
+        needed = 0
+        for count, row in elements:
+            if row is None:
+                break
+            needed += count * row
+        short = len(data) < needed
+    else:
+        short = _count_lines(data) < sum(count for count, _ in elements)
+    return _SHORT if short else None
+
+
+def _pcd_truncation(path: Path) -> str | None:
+    """Why a PCD file is shorter than its header says, or None if it is not (or unknown)."""
+    header: dict[bytes, list[bytes]] = {}
+    with path.open("rb") as fh:
+        for line in fh:
+            words = line.split()
+            if words and not words[0].startswith(b"#"):
+                header[words[0].upper()] = words[1:]
+            if words[:1] == [b"DATA"]:
+                break
+        else:
+            return "no DATA line"
+        data = fh.read()
+    try:
+        points = int(header[b"POINTS"][0])
+        row = sum(int(s) * int(c) for s, c in zip(header[b"SIZE"], header[b"COUNT"], strict=True))
+    except (KeyError, IndexError, ValueError):
+        return None  # open3d judges headers
+    kind = header[b"DATA"][:1]
+    if kind == [b"ascii"]:
+        return _SHORT if _count_lines(data) < points else None
+    if kind == [b"binary"]:
+        return _SHORT if len(data) < points * row else None
+    return None  # binary_compressed: open3d fails on its own
+
+
+_SHORT = "truncated: the file is shorter than its header declares"
+
+
+def _count_lines(data: bytes) -> int:
+    return sum(1 for line in data.splitlines() if line.strip())
+
+
+def _read_las_xyz(path: Path) -> np.ndarray:
+    return read_las(path).points
+
+
+def _read_kitti_bin(path: Path) -> np.ndarray:
+    size = path.stat().st_size
+    if size % 16:
+        raise FileFormatError(
+            path,
+            f"size {size} B is not a multiple of 16 B (float32 x, y, z, reflectance); truncated?",
+            field="size",
+        )
+    return np.fromfile(path, dtype="<f4").reshape(-1, 4)[:, :3]
+
+
+def _finite_xyz(path: Path, arr: np.ndarray) -> np.ndarray:
+    """Check shape and dtype, keep x, y, z as float64 and drop non-finite rows."""
+    if arr.dtype.names is not None:
+        lower = {n.lower(): n for n in arr.dtype.names}
+        missing = [c for c in "xyz" if c not in lower]
+        if missing:
+            raise FileFormatError(
+                path,
+                f"structured array without field(s) {missing}; has {list(arr.dtype.names)}",
+                field=missing[0],
+            )
+        arr = np.stack([arr[lower[c]] for c in "xyz"], axis=-1).reshape(-1, 3)
+    if arr.dtype.kind not in "fiu":
+        raise FileFormatError(
+            path, f"expected numbers, got dtype {arr.dtype} ({arr.dtype.kind!r})", "dtype"
+        )
+    if arr.ndim != 2 or arr.shape[1] < 3:
+        raise FileFormatError(
+            path, f"expected an (N, 3) or (N, >=3) array of x, y, z; got shape {arr.shape}", "shape"
+        )
+    if arr.shape[0] == 0:
+        raise FileFormatError(path, "the file holds no points", field="points")
+    xyz = np.array(arr[:, :3], dtype=np.float64)
+    finite = np.isfinite(xyz).all(axis=1)
+    if not finite.all():
+        n_bad = int((~finite).sum())
+        if n_bad == len(xyz):
+            raise FileFormatError(path, f"all {n_bad} points are NaN or infinite", field="xyz")
+        log.debug("%s: dropped %d of %d points with NaN or inf", path, n_bad, len(xyz))
+        xyz = xyz[finite]
+    return xyz
+
+
+# --------------------------------------------------------------------------------------------
+# Writers
+
+
+def _write_npy(path: Path, points: np.ndarray) -> None:
+    with path.open("wb") as fh:
+        np.save(fh, points, allow_pickle=False)
+
+
+def _write_text(path: Path, points: np.ndarray) -> None:
+    np.savetxt(path, points, fmt="%.17g", delimiter=",", header="x,y,z", comments="")
+
+
+def _write_open3d(path: Path, points: np.ndarray) -> None:
+    import open3d as o3d
+
+    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.ascontiguousarray(points)))
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        ok = o3d.t.io.write_point_cloud(str(path), cloud)
+    if not ok:
+        raise FileFormatError(path, "open3d could not write the file")
+
+
+_LAS_SCALE = 1e-4  # m per integer step: 0.1 mm, far below any roughness of interest
+
+
+def _write_las(path: Path, points: np.ndarray) -> None:
+    import laspy
+
+    if not np.isfinite(points).all():
+        raise InputError("LAS cannot store NaN or infinite coordinates; drop those points first")
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    offsets = np.round((lo + hi) / 2)
+    reach = np.abs(np.stack([lo - offsets, hi - offsets])).max()
+    if reach / _LAS_SCALE >= 2**31 - 1:
+        raise InputError(
+            f"the cloud spans {reach * 2:.0f} m, too wide for LAS at {_LAS_SCALE} m resolution"
+        )
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.scales = np.full(3, _LAS_SCALE)
+    header.offsets = offsets
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
+    las.write(str(path))
+
+
+READERS: dict[str, CloudReader] = {
+    ".npy": _read_npy,
+    ".csv": _read_text,
+    ".xyz": _read_text,
+    ".txt": _read_text,
+    ".ply": _read_open3d,
+    ".pcd": _read_open3d,
+    ".las": _read_las_xyz,
+    ".laz": _read_las_xyz,
+    ".bin": _read_kitti_bin,
+}
+"""Point-cloud readers by lower-case suffix."""
+
+WRITERS: dict[str, CloudWriter] = {
+    ".npy": _write_npy,
+    ".csv": _write_text,
+    ".xyz": _write_text,
+    ".txt": _write_text,
+    ".ply": _write_open3d,
+    ".pcd": _write_open3d,
+    ".las": _write_las,
+    ".laz": _write_las,
+}
+"""Point-cloud writers by lower-case suffix."""
+
+
+# --------------------------------------------------------------------------------------------
+# LAS coordinate reference system without pyproj
+
+# EPSG unit of measure codes used by GeoTIFF keys, in m.
+_EPSG_LENGTH_UNITS = {
+    9001: ("metre", 1.0),
+    9002: ("foot", 0.3048),
+    9003: ("US survey foot", 1200 / 3937),
+}
+_USER_DEFINED = 32767
+_GEOKEY_MODEL_TYPE, _GEOKEY_GEOGRAPHIC, _GEOKEY_PROJECTED = 1024, 2048, 3072
+_GEOKEY_LINEAR_UNITS, _GEOKEY_VERTICAL_UNITS = 3076, 4099
+_MODEL_TYPE_GEOGRAPHIC = 2
+
+
+def _las_crs(path: Path, vlrs: list[object]) -> LasCrs | None:
+    wkt = next((str(v.string) for v in vlrs if hasattr(v, "string") and v.string), None)
+    geokeys: dict[int, int] = {}
+    for v in vlrs:
+        for key in getattr(v, "geo_keys", None) or []:
+            if key.tiff_tag_location == 0 and key.id:  # value stored in the key itself
+                geokeys[key.id] = key.value_offset
+    if wkt is None and not geokeys:
+        log.info("%s: no CRS record; coordinates taken as m", path)
+        return None
+
+    horizontal = vertical = None
+    geographic = geokeys.get(_GEOKEY_MODEL_TYPE) == _MODEL_TYPE_GEOGRAPHIC
+    epsg = None
+    if wkt is not None:
+        horizontal, vertical, wkt_geographic, epsg = _wkt_units(wkt)
+        geographic = wkt_geographic
+    if horizontal is None and (code := geokeys.get(_GEOKEY_LINEAR_UNITS)) in _EPSG_LENGTH_UNITS:
+        horizontal = _EPSG_LENGTH_UNITS[code]
+    if vertical is None and (code := geokeys.get(_GEOKEY_VERTICAL_UNITS)) in _EPSG_LENGTH_UNITS:
+        vertical = _EPSG_LENGTH_UNITS[code]
+    if epsg is None:
+        key = _GEOKEY_GEOGRAPHIC if geographic else _GEOKEY_PROJECTED
+        code = geokeys.get(key)
+        epsg = code if code and code != _USER_DEFINED else None
+    if geographic:
+        raise FileFormatError(
+            path,
+            "geographic CRS (longitude, latitude in degrees); reproject to a projected CRS in m",
+            field="crs",
+        )
+    if horizontal is None:
+        log.warning("%s: CRS without a linear unit; coordinates taken as m", path)
+        horizontal = ("metre", 1.0)
+    if vertical is None:
+        log.debug("%s: no vertical unit; z taken in %s like x and y", path, horizontal[0])
+        vertical = horizontal
+    return LasCrs(
+        wkt=wkt,
+        epsg=epsg,
+        horizontal_unit_m=horizontal[1],
+        vertical_unit_m=vertical[1],
+        unit_name=horizontal[0],
+    )
+
+
+def _wkt_nodes(text: str) -> list[tuple[str, str]]:
+    """Top-level ``KEYWORD[...]`` nodes of a WKT string as (KEYWORD upper-case, inner text)."""
+    nodes: list[tuple[str, str]] = []
+    depth, in_str, boundary, start, keyword = 0, False, 0, 0, ""
+    for i, ch in enumerate(text):
+        if ch == '"':
+            in_str = not in_str
+        elif in_str:
+            continue
+        elif ch in "[(":
+            if depth == 0:
+                keyword, start = text[boundary:i].strip().upper(), i + 1
+            depth += 1
+        elif ch in "])":
+            depth -= 1
+            if depth == 0:
+                nodes.append((keyword, text[start:i]))
+                boundary = i + 1
+        elif ch == "," and depth == 0:
+            boundary = i + 1
+    return nodes
+
+
+def _wkt_args(inner: str) -> list[str]:
+    """Top-level comma-separated plain arguments of a node (strings unquoted, no subnodes)."""
+    args, depth, in_str, cur = [], 0, False, ""
+    for ch in inner:
+        if ch == '"':
+            in_str = not in_str
+        if not in_str and ch in "[(":
+            depth += 1
+        elif not in_str and ch in "])":
+            depth -= 1
+        if ch == "," and depth == 0 and not in_str:
+            args.append(cur.strip().strip('"'))
+            cur = ""
+        else:
+            cur += ch
+    args.append(cur.strip().strip('"'))
+    return [a for a in args if "[" not in a and "(" not in a]
+
+
+_UNIT_NODES = ("UNIT", "LENGTHUNIT")
+_PROJECTED = ("PROJCS", "PROJCRS", "PROJECTEDCRS")
+_GEOGRAPHIC = ("GEOGCS", "GEOGCRS", "GEODCRS", "GEOGRAPHICCRS", "GEODETICCRS")
+_VERTICAL = ("VERT_CS", "VERTCRS", "VERTICALCRS")
+
+
+def _node_unit(inner: str) -> tuple[str, float] | None:
+    """The length unit of a CRS node: a direct UNIT child, else the first axis unit."""
+    children = _wkt_nodes(inner)
+    for keyword, body in children:
+        if keyword in _UNIT_NODES:
+            name, factor = _wkt_args(body)[:2]
+            return name, float(factor)
+    for keyword, body in children:
+        if keyword == "AXIS":
+            for sub, sub_body in _wkt_nodes(body):
+                if sub in _UNIT_NODES:
+                    name, factor = _wkt_args(sub_body)[:2]
+                    return name, float(factor)
+    return None
+
+
+def _node_epsg(inner: str) -> int | None:
+    for keyword, body in _wkt_nodes(inner):
+        if keyword in ("AUTHORITY", "ID"):
+            args = _wkt_args(body)
+            if len(args) >= 2 and args[0].upper() == "EPSG" and args[1].isdigit():
+                return int(args[1])
+    return None
+
+
+def _wkt_units(
+    wkt: str,
+) -> tuple[tuple[str, float] | None, tuple[str, float] | None, bool, int | None]:
+    """(horizontal unit, vertical unit, is geographic, EPSG) of a WKT1 or WKT2 CRS."""
+    try:
+        top = _wkt_nodes(wkt)
+        if not top:
+            return None, None, False, None
+        keyword, inner = top[0]
+        parts = _wkt_nodes(inner) if keyword in ("COMPD_CS", "COMPOUNDCRS") else [top[0]]
+        horizontal = vertical = None
+        geographic = False
+        epsg = _node_epsg(inner)
+        for kw, body in parts:
+            if kw in _PROJECTED:
+                horizontal = _node_unit(body)
+            elif kw in _GEOGRAPHIC:
+                geographic = True
+            elif kw in _VERTICAL:
+                vertical = _node_unit(body)
+            if kw in _PROJECTED + _GEOGRAPHIC and epsg is None:
+                epsg = _node_epsg(body)  # the horizontal part of a compound CRS
+        return horizontal, vertical, geographic and horizontal is None, epsg
+    except (ValueError, IndexError):
+        log.warning("could not parse the units of this WKT: %.200s", wkt)
+        return None, None, False, None

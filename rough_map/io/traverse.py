@@ -1,0 +1,267 @@
+"""Traverse folders: ``traverse.json`` (or ``.yaml``/``.yml``) plus the files it names.
+
+A traverse is a run of a vehicle over terrain: a list of frames, each with a time (s), the
+vehicle pose in the world frame (m, rad) and a point cloud in the vehicle frame and/or a
+stereo pair. The schema is :class:`rough_map.config.TraverseSpec` (published as
+``data_schema/traverse.schema.json``). Paths in the file are relative to its folder.
+
+>>> traverse = load_traverse("runs/field_a")          # doctest: +SKIP
+>>> points = traverse.load_cloud(0, frame="world")     # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from rough_map.config import FrameSpec, TraverseSpec, load_model
+from rough_map.errors import FileFormatError, SchemaError
+from rough_map.io.pointcloud import PathLike, atomic_output, read_cloud
+
+log = logging.getLogger(__name__)
+
+TRAVERSE_FILES = ("traverse.json", "traverse.yaml", "traverse.yml")
+"""File names looked for in a traverse folder, in this order."""
+
+
+@dataclass(frozen=True)
+class Traverse:
+    """A validated traverse and the folder its paths are relative to.
+
+    Attributes
+    ----------
+    spec : TraverseSpec
+        The content of the traverse file.
+    root : Path
+        Folder of the traverse file; relative paths are resolved against it.
+    source : Path
+        The traverse file (``root / "traverse.json"`` for one not yet saved); named in errors.
+    """
+
+    spec: TraverseSpec
+    root: Path
+    source: Path
+
+    @classmethod
+    def from_spec(cls, spec: TraverseSpec, root: PathLike) -> Traverse:
+        """Wrap an in-memory spec whose paths are relative to ``root``."""
+        root = Path(root)
+        return cls(spec=spec, root=root, source=root / TRAVERSE_FILES[0])
+
+    @property
+    def name(self) -> str:
+        """Name of the traverse."""
+        return self.spec.name
+
+    @property
+    def frames(self) -> list[FrameSpec]:
+        """The frames, in time order."""
+        return self.spec.frames
+
+    def __len__(self) -> int:
+        return len(self.spec.frames)
+
+    def times(self) -> np.ndarray:
+        """Frame times, shape (N,), s."""
+        return np.array([f.t for f in self.spec.frames])
+
+    def poses(self) -> np.ndarray:
+        """Vehicle poses, shape (N, 6): x, y, z in m, roll, pitch, yaw in rad."""
+        return np.array(
+            [[p.x, p.y, p.z, p.roll, p.pitch, p.yaw] for p in (f.pose for f in self.frames)]
+        )
+
+    def labels(self) -> list[str | None]:
+        """Terrain class name of each frame (None where unlabelled)."""
+        return [f.label for f in self.spec.frames]
+
+    def resolve(self, relative: str) -> Path:
+        """Where a path written in the traverse file points: ``root / relative``."""
+        return self.root / relative
+
+    def pose_matrix(self, index: int) -> np.ndarray:
+        """4x4 transform vehicle -> world of frame ``index`` (m)."""
+        return self._frame(index).pose.matrix()
+
+    def cloud_path(self, index: int) -> Path:
+        """Path of the point cloud of frame ``index``.
+
+        Raises
+        ------
+        SchemaError
+            The frame has no cloud, or the file does not exist.
+        """
+        frame = self._frame(index)
+        if frame.cloud is None:
+            raise self._error(f"frames[{index}].cloud", "this frame has no point cloud")
+        path = self.resolve(frame.cloud)
+        if not path.is_file():
+            raise self._error(f"frames[{index}].cloud", f"{frame.cloud} does not exist")
+        return path
+
+    def load_cloud(self, index: int, frame: Literal["vehicle", "world"] = "vehicle") -> np.ndarray:
+        """Read the point cloud of frame ``index``.
+
+        Parameters
+        ----------
+        index : int
+            Frame index (negative counts from the end).
+        frame : {"vehicle", "world"}
+            Return the points as stored (vehicle frame) or moved to the world frame with the
+            frame's pose.
+
+        Returns
+        -------
+        ndarray, shape (N, 3)
+            x, y, z in m.
+
+        Raises
+        ------
+        SchemaError
+            The frame has no cloud or its file is missing.
+        FileFormatError
+            The cloud file cannot be read.
+        """
+        points = read_cloud(self.cloud_path(index))
+        if frame == "world":
+            transform = self.pose_matrix(index)
+            points = points @ transform[:3, :3].T + transform[:3, 3]
+        elif frame != "vehicle":
+            raise ValueError(f"frame must be 'vehicle' or 'world', got {frame!r}")
+        return points
+
+    def validate_files(self) -> None:
+        """Check that every file the traverse names exists.
+
+        Raises
+        ------
+        SchemaError
+            Naming the first missing files by their field (``frames[3].cloud``) and path.
+        """
+        missing: list[tuple[str, str]] = []
+        if self.spec.height_field is not None:
+            missing += self._missing("height_field", self.spec.height_field)
+        for i, f in enumerate(self.spec.frames):
+            for key in ("cloud", "left", "right"):
+                relative = getattr(f, key)
+                if relative is not None:
+                    missing += self._missing(f"frames[{i}].{key}", relative)
+        if missing:
+            shown = "; ".join(f"{where}: {rel} does not exist" for where, rel in missing[:3])
+            more = f" (and {len(missing) - 3} more missing files)" if len(missing) > 3 else ""
+            error = SchemaError(self.source, shown + more)
+            error.field = missing[0][0]
+            raise error
+
+    def _missing(self, where: str, relative: str) -> list[tuple[str, str]]:
+        return [] if self.resolve(relative).is_file() else [(where, relative)]
+
+    def _frame(self, index: int) -> FrameSpec:
+        try:
+            return self.spec.frames[index]
+        except IndexError:
+            raise IndexError(
+                f"frame {index} out of range: {self.source} has {len(self)} frames"
+            ) from None
+
+    def _error(self, where: str, message: str) -> SchemaError:
+        error = SchemaError(self.source, f"{where}: {message}")
+        error.field = where
+        return error
+
+
+def find_traverse_file(dir_or_file: PathLike) -> Path:
+    """The traverse file of a folder, or ``dir_or_file`` itself if it is a file.
+
+    Raises
+    ------
+    FileFormatError
+        Nothing there, no traverse file in the folder, or more than one.
+    """
+    path = Path(dir_or_file)
+    if path.is_file():
+        return path
+    if not path.exists():
+        raise FileFormatError(path, "no such file or folder")
+    found = [path / n for n in TRAVERSE_FILES if (path / n).is_file()]
+    if not found:
+        raise FileFormatError(path, f"not a traverse folder: none of {', '.join(TRAVERSE_FILES)}")
+    if len(found) > 1:
+        names = ", ".join(p.name for p in found)
+        raise FileFormatError(path, f"ambiguous traverse folder: both {names}; keep one")
+    return found[0]
+
+
+def load_traverse(dir_or_file: PathLike) -> Traverse:
+    """Load and validate a traverse.
+
+    Only the traverse file is read; the files it names are checked when used, or all at
+    once by :meth:`Traverse.validate_files`.
+
+    Parameters
+    ----------
+    dir_or_file : str or PathLike
+        A traverse folder (holding one of ``traverse.json``, ``traverse.yaml``,
+        ``traverse.yml``) or the traverse file itself.
+
+    Returns
+    -------
+    Traverse
+
+    Raises
+    ------
+    FileFormatError
+        No traverse file, or a JSON/YAML syntax error.
+    SchemaError
+        The content does not follow the schema. The message names the file, the frame and
+        the field, e.g. ``runs/a/traverse.json: frames[3].pose.x: Field required``.
+    """
+    source = find_traverse_file(dir_or_file)
+    spec = load_model(source, TraverseSpec)
+    log.debug("loaded %s: %d frames", source, len(spec.frames))
+    return Traverse(spec=spec, root=source.parent, source=source)
+
+
+def save_traverse(traverse: Traverse | TraverseSpec, out_dir: PathLike) -> Path:
+    """Write ``traverse.json`` atomically into ``out_dir``.
+
+    Paths inside are written as they are: they must be relative to ``out_dir``.
+
+    Parameters
+    ----------
+    traverse : Traverse or TraverseSpec
+        What to write.
+    out_dir : str or PathLike
+        The traverse folder (created if needed).
+
+    Returns
+    -------
+    Path
+        The file written.
+    """
+    spec = traverse.spec if isinstance(traverse, Traverse) else traverse
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    target = out_dir / TRAVERSE_FILES[0]
+    others = [n for n in TRAVERSE_FILES[1:] if (out_dir / n).exists()]
+    if others:
+        raise FileFormatError(
+            out_dir, f"holds {others[0]}; writing {target.name} beside it would be ambiguous"
+        )
+    text = _dumps(spec.model_dump(mode="json", exclude_none=True))
+    with atomic_output(target) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return target
+
+
+def _dumps(data: dict[str, object]) -> str:
+    """JSON with one frame per line: readable, and diffs show which frames changed."""
+    frames = data.pop("frames")
+    head = json.dumps(data, indent=2)[: -len("\n}")]
+    rows = ",\n".join("    " + json.dumps(f) for f in frames)  # type: ignore[attr-defined]
+    return f'{head},\n  "frames": [\n{rows}\n  ]\n}}\n'
