@@ -196,9 +196,16 @@ def _rotate(
     q: np.ndarray, rot: np.ndarray, offset: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rows of ``rot @ q.T + offset`` as three columns (faster than a matmul with K = 3)."""
-    x, y, z = q[:, 0], q[:, 1], q[:, 2]
+    x, y, z = np.ascontiguousarray(q.T)  # strided columns are slow to combine
     t = np.zeros(3) if offset is None else offset
-    return tuple(rot[i, 0] * x + rot[i, 1] * y + rot[i, 2] * z + t[i] for i in range(3))
+    out = []
+    for i in range(3):
+        row = x * rot[i, 0]
+        row += y * rot[i, 1]
+        row += z * rot[i, 2]
+        row += t[i]
+        out.append(row)
+    return tuple(out)
 
 
 def levelling_rotation(normal: np.ndarray) -> np.ndarray:
