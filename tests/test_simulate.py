@@ -75,7 +75,7 @@ def test_reverse_course_gives_the_surfaces_in_reverse(tmp_path):
     assert [s.surface for s in segs] == ["gravel", "dirt_road", "concrete"]
     assert segs[-1].start <= defects[0].x <= segs[-1].end
     out = tmp_path / "rev"
-    simulate(out, "mixed-reverse", length=12.0, seed=3, images=False, sensor=SPARSE)
+    simulate(out, "mixed-reverse", length=6.0, seed=3, images=False, sensor=SPARSE)
     labels = [f.label for f in load_traverse(out).frames]
     firsts = list(dict.fromkeys(labels))
     assert firsts == ["gravel", "dirt_road", "concrete"]
