@@ -21,18 +21,11 @@ from pathlib import Path
 import numpy as np
 
 from rough_map import iso8608
+from rough_map.export.profiles import CLASS_COLOURS, LEVEL_COLOURS
 
 log = logging.getLogger(__name__)
 
-#: Colours of the terrain classes (RGB 0-255), shared with the GeoTIFF colour table.
-CLASS_COLOURS: dict[str, tuple[int, int, int]] = {
-    "concrete": (160, 160, 160),
-    "dirt_road": (196, 160, 100),
-    "gravel": (90, 110, 140),
-    "compact_soil": (140, 100, 60),
-    "ploughed_soil": (80, 50, 30),
-}
-LEVEL_COLOURS = ("#2ca02c", "#ffbf00", "#d62728")  # low, medium, high
+_LEVEL_RGB = [tuple(v / 255 for v in c) for c in LEVEL_COLOURS]  # matplotlib colours
 
 
 def class_colour(name: str, index: int = 0) -> tuple[int, int, int]:
@@ -92,12 +85,16 @@ def roughness_along_path(
     ax1.fill_between(d, lo, R + sigma_R, where=ok, color="0.8", label="±1σ")
     ax1.plot(d[ok], R[ok], "k-", lw=1.2, label="R")
     ax1.set_yscale("log")
-    ymin, ymax = np.nanmin(lo[ok]) if ok.any() else 1e-6, np.nanmax((R + sigma_R)[ok]) if ok.any() else 1e-2
+    ymin, ymax = (
+        np.nanmin(lo[ok]) if ok.any() else 1e-6,
+        np.nanmax((R + sigma_R)[ok]) if ok.any() else 1e-2,
+    )
     for cls, phi in iso8608.PHI0.items():
         if ymin / 3 < phi < ymax * 3:
             ax1.axhline(phi, color="tab:blue", lw=0.6, ls="--")
-            ax1.text(d[0] if d.size else 0, phi, f" ISO {cls}", color="tab:blue", fontsize=8,
-                     va="bottom")
+            ax1.text(
+                d[0] if d.size else 0, phi, f" ISO {cls}", color="tab:blue", fontsize=8, va="bottom"
+            )
     ax1.set_ylabel("R  [m³/rad]")
     ax2.fill_between(d, w - sigma_w, w + sigma_w, where=ok, color="0.8")
     ax2.plot(d[ok], w[ok], "k-", lw=1.2)
@@ -112,23 +109,44 @@ def roughness_along_path(
                 continue
             c = np.array(class_colour(name, k)) / 255
             for ax in (ax1, ax2):
-                ax.fill_between(d, 0, 1, where=sel, color=c, alpha=0.15,
-                                transform=ax.get_xaxis_transform(), step="mid",
-                                label=name if ax is ax1 else None)
+                ax.fill_between(
+                    d,
+                    0,
+                    1,
+                    where=sel,
+                    color=c,
+                    alpha=0.15,
+                    transform=ax.get_xaxis_transform(),
+                    step="mid",
+                    label=name if ax is ax1 else None,
+                )
     ax1.legend(loc="upper right", fontsize=8, ncol=3)
     if title:
         ax1.set_title(title)
     return _save(plt, fig, path)
 
 
-def profile_psd_fit(omega: np.ndarray, psd: np.ndarray, R: float, w: float,
-                    path: str | Path, *, omega0: float = 1.0, title: str = "") -> Path:
+def profile_psd_fit(
+    omega: np.ndarray,
+    psd: np.ndarray,
+    R: float,
+    w: float,
+    path: str | Path,
+    *,
+    omega0: float = 1.0,
+    title: str = "",
+) -> Path:
     """PSD of one profile (m^3/rad) against Omega (rad/m) with its fit R Omega^w (Fig. 4)."""
     plt, fig = _figure(7, 5)
     ax = fig.add_subplot(1, 1, 1)
     ax.loglog(omega, psd, color="0.55", lw=1.0, label="PSD of the profile")
-    ax.loglog(omega, R * (omega / omega0) ** w, "k-", lw=1.6,
-              label=f"fit: R = {R:.2e} m³/rad, w = {w:.2f}")
+    ax.loglog(
+        omega,
+        R * (omega / omega0) ** w,
+        "k-",
+        lw=1.6,
+        label=f"fit: R = {R:.2e} m³/rad, w = {w:.2f}",
+    )
     ax.set_xlabel("Ω  [rad/m]")
     ax.set_ylabel("PSD  [m³/rad]")
     ax.legend()
@@ -137,8 +155,15 @@ def profile_psd_fit(omega: np.ndarray, psd: np.ndarray, R: float, w: float,
     return _save(plt, fig, path)
 
 
-def profile_scatter(profile_R: np.ndarray, profile_w: np.ndarray, R: float, w: float,
-                    path: str | Path, *, title: str = "") -> Path:
+def profile_scatter(
+    profile_R: np.ndarray,
+    profile_w: np.ndarray,
+    R: float,
+    w: float,
+    path: str | Path,
+    *,
+    title: str = "",
+) -> Path:
     """Per-profile (R, w) of a patch, R on a log axis, with the patch mean (Fig. 5)."""
     plt, fig = _figure(6, 5)
     ax = fig.add_subplot(1, 1, 1)
@@ -152,8 +177,12 @@ def profile_scatter(profile_R: np.ndarray, profile_w: np.ndarray, R: float, w: f
     return _save(plt, fig, path)
 
 
-def psd_lines_vs_iso(surfaces: dict[str, tuple[float, float]], path: str | Path, *,
-                     band: tuple[float, float] = (2 * np.pi / 0.896, np.pi / 0.008)) -> Path:
+def psd_lines_vs_iso(
+    surfaces: dict[str, tuple[float, float]],
+    path: str | Path,
+    *,
+    band: tuple[float, float] = (2 * np.pi / 0.896, np.pi / 0.008),
+) -> Path:
     """Fitted PSD lines ``R Omega^w`` of surfaces against the ISO 8608 classes (Fig. 10).
 
     ``surfaces`` maps a name to (R in m^3/rad, w).
@@ -163,8 +192,15 @@ def psd_lines_vs_iso(surfaces: dict[str, tuple[float, float]], path: str | Path,
     om = np.geomspace(band[0], band[1], 50)
     for cls, phi in iso8608.PHI0.items():
         ax.loglog(om, phi * om**-2.0, color="tab:blue", lw=0.7, ls="--")
-        ax.text(om[0], phi * om[0] ** -2.0, f"{cls} ", color="tab:blue", ha="right",
-                fontsize=8, va="center")
+        ax.text(
+            om[0],
+            phi * om[0] ** -2.0,
+            f"{cls} ",
+            color="tab:blue",
+            ha="right",
+            fontsize=8,
+            va="center",
+        )
     for k, (name, (r, w)) in enumerate(surfaces.items()):
         c = np.array(class_colour(name, k)) / 255
         ax.loglog(om, r * om**w, color=c, lw=2.2, label=f"{name}: R={r:.1e}, w={w:.2f}")
@@ -176,8 +212,14 @@ def psd_lines_vs_iso(surfaces: dict[str, tuple[float, float]], path: str | Path,
     return _save(plt, fig, path)
 
 
-def class_scatter(R: np.ndarray, w: np.ndarray, labels: Sequence[str], path: str | Path, *,
-                  level_edges: tuple[float, float] | None = None) -> Path:
+def class_scatter(
+    R: np.ndarray,
+    w: np.ndarray,
+    labels: Sequence[str],
+    path: str | Path,
+    *,
+    level_edges: tuple[float, float] | None = None,
+) -> Path:
     """(R, w) by class with the low/medium/high roughness regions (Fig. 19).
 
     ``level_edges`` are the two R thresholds (m^3/rad) between low/medium and medium/high.
@@ -191,14 +233,26 @@ def class_scatter(R: np.ndarray, w: np.ndarray, labels: Sequence[str], path: str
         rmin, rmax = np.nanmin(R[ok]) / 3, np.nanmax(R[ok]) * 3
         edges = [rmin, *level_edges, rmax]
         for k, name in enumerate(("low", "medium", "high")):
-            ax.axhspan(max(edges[k], rmin), min(edges[k + 1], rmax), color=LEVEL_COLOURS[k],
-                       alpha=0.12, label=f"{name} roughness")
+            ax.axhspan(
+                max(edges[k], rmin),
+                min(edges[k + 1], rmax),
+                color=_LEVEL_RGB[k],
+                alpha=0.12,
+                label=f"{name} roughness",
+            )
         ax.set_xlim(wmin, wmax)
     for k, name in enumerate(dict.fromkeys(labels[ok])):
         sel = ok & (labels == name)
         c = np.array(class_colour(str(name), k)) / 255
-        ax.scatter(w[sel], R[sel], s=14, color=c, label=str(name) or "(unlabelled)",
-                   edgecolors="k", linewidths=0.2)
+        ax.scatter(
+            w[sel],
+            R[sel],
+            s=14,
+            color=c,
+            label=str(name) or "(unlabelled)",
+            edgecolors="k",
+            linewidths=0.2,
+        )
     ax.set_yscale("log")
     ax.set_xlabel("w")
     ax.set_ylabel("R  [m³/rad]")
@@ -207,9 +261,15 @@ def class_scatter(R: np.ndarray, w: np.ndarray, labels: Sequence[str], path: str
     return _save(plt, fig, path)
 
 
-def map_layers(layers: dict[str, np.ndarray], extent: tuple[float, float, float, float],
-               path: str | Path, *, path_xy: np.ndarray | None = None,
-               class_names: Sequence[str] = (), titles: dict[str, str] | None = None) -> Path:
+def map_layers(
+    layers: dict[str, np.ndarray],
+    extent: tuple[float, float, float, float],
+    path: str | Path,
+    *,
+    path_xy: np.ndarray | None = None,
+    class_names: Sequence[str] = (),
+    titles: dict[str, str] | None = None,
+) -> Path:
     """Map layers stacked vertically with the rover's path (Figs. 20, 21).
 
     ``layers`` maps a name to a 2-D array whose row 0 is the southern (min y) edge;
@@ -231,20 +291,23 @@ def map_layers(layers: dict[str, np.ndarray], extent: tuple[float, float, float,
             cols = [np.array(class_colour(c, i)) / 255 for i, c in enumerate(class_names)]
             cmap = ListedColormap(cols)
             norm = BoundaryNorm(np.arange(len(class_names) + 1) - 0.5, len(class_names))
-            im = ax.imshow(data, origin="lower", extent=extent, cmap=cmap, norm=norm,
-                           interpolation="nearest")
+            im = ax.imshow(
+                data, origin="lower", extent=extent, cmap=cmap, norm=norm, interpolation="nearest"
+            )
             cb = fig.colorbar(im, ax=ax, ticks=range(len(class_names)), fraction=0.025)
             cb.ax.set_yticklabels(class_names, fontsize=7)
         elif name == "level":
-            cmap = ListedColormap(LEVEL_COLOURS)
+            cmap = ListedColormap(_LEVEL_RGB)
             norm = BoundaryNorm([-0.5, 0.5, 1.5, 2.5], 3)
-            im = ax.imshow(data, origin="lower", extent=extent, cmap=cmap, norm=norm,
-                           interpolation="nearest")
+            im = ax.imshow(
+                data, origin="lower", extent=extent, cmap=cmap, norm=norm, interpolation="nearest"
+            )
             cb = fig.colorbar(im, ax=ax, ticks=[0, 1, 2], fraction=0.025)
             cb.ax.set_yticklabels(["low", "medium", "high"], fontsize=7)
         else:
-            im = ax.imshow(data, origin="lower", extent=extent, cmap="viridis",
-                           interpolation="nearest")
+            im = ax.imshow(
+                data, origin="lower", extent=extent, cmap="viridis", interpolation="nearest"
+            )
             fig.colorbar(im, ax=ax, fraction=0.025)
         if path_xy is not None and len(path_xy):
             ax.plot(path_xy[:, 0], path_xy[:, 1], "-", color="tab:blue", lw=1.2)

@@ -1,0 +1,79 @@
+"""Export a grid map: Cloud-Optimized GeoTIFFs, PNGs per layer, a grid_map bag.
+
+:func:`export_map` writes everything a map has; the writers live in
+:mod:`rough_map.export.geotiff`, :mod:`rough_map.export.png` and
+:mod:`rough_map.export.gridmap_msg`, their defaults in :mod:`rough_map.export.profiles`.
+Heavy libraries (rasterio, matplotlib, rosbags) are imported only when a writer runs.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from rough_map.map.grid import GridMap
+
+log = logging.getLogger(__name__)
+
+__all__ = ["export_map"]
+
+
+def export_map(
+    grid: GridMap,
+    out_dir: str | Path,
+    *,
+    name: str = "map",
+    png: bool = True,
+    gridmap_bag: bool = False,
+) -> dict[str, Path]:
+    """Write a map's files to ``out_dir`` (created if missing).
+
+    Parameters
+    ----------
+    grid : GridMap
+        The map (e.g. from :func:`rough_map.map.fuse_traverse`).
+    out_dir : str or Path
+        Output folder.
+    name : str
+        Stem of the file names.
+    png : bool
+        Also draw one PNG per exported layer.
+    gridmap_bag : bool
+        Also write a ``grid_map_msgs/msg/GridMap`` in a ROS 2 MCAP bag.
+
+    Returns
+    -------
+    dict of str to Path
+        ``"geotiff"``: ``<name>.tif`` (float32 value layers);
+        ``"geotiff_<layer>"``: ``<name>_<layer>.tif`` per class layer (``class``,
+        ``far_class``; uint8 with colour table);
+        ``"png_<layer>"``: ``<name>_<layer>.png`` per layer;
+        ``"gridmap_bag"``: the bag folder ``<name>_gridmap``.
+    """
+    from rough_map.export.geotiff import (
+        class_layers,
+        value_layers,
+        write_class_geotiff,
+        write_values_geotiff,
+    )
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths: dict[str, Path] = {}
+    if value_layers(grid):
+        paths["geotiff"] = write_values_geotiff(grid, out / f"{name}.tif")
+    for layer in class_layers(grid):
+        paths[f"geotiff_{layer}"] = write_class_geotiff(grid, out / f"{name}_{layer}.tif", layer)
+    if png:
+        from rough_map.export.png import write_pngs
+
+        for layer, p in write_pngs(grid, out, name).items():
+            paths[f"png_{layer}"] = p
+    if gridmap_bag:
+        from rough_map.export.gridmap_msg import write_gridmap_bag
+
+        paths["gridmap_bag"] = write_gridmap_bag(grid, out / f"{name}_gridmap")
+    log.info("exported map %r: %d files in %s", name, len(paths), out)
+    return paths

@@ -1,0 +1,303 @@
+"""Cloud-Optimized GeoTIFFs of a grid map (rasterio).
+
+A GeoTIFF holds one data type for all its bands, and a colour table only on band 1, so a
+map becomes (profiles in :mod:`rough_map.export.profiles`):
+
+``<name>.tif``
+    float32, one band per value layer, described by the layer name (``R``, ``w``,
+    ``sigma_R``, ``sigma_w``, ``level``, ``count``, ``last_seen``, ``p_<class>``, then the
+    far-field ``far_count``, ``far_p_<class>``...), with band tags ``units``,
+    ``long_name`` and ``layer``. Nodata: NaN.
+``<name>_class.tif``, ``<name>_far_class.tif``
+    uint8, one band described ``class`` (``far_class``): the class index, with a colour
+    table, the class names in tags (``class_names`` as JSON and ``CLASS_<i>=<name>``).
+    Nodata: 255.
+
+Rows are north-up (the map's rows flipped); the geotransform puts the map's south-west
+corner at its origin. The CRS is the traverse's EPSG code; for a local frame with a
+geodetic origin, a transverse Mercator centred on that origin; without origin, a local
+engineering CRS (``LOCAL_CS``, metres). Dataset tags give ``crs_code``, ``frame_id``,
+``geodetic_origin`` (JSON ``[lat, lon, alt]``), ``class_names``, ``level_names``.
+
+Files are written to a temporary name and moved into place.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rough_map import __version__
+from rough_map.errors import InputError
+from rough_map.export.profiles import (
+    CLASS_COLOURS,
+    CLASS_NODATA,
+    LEADING_BANDS,
+    ClassProfile,
+    ValuesProfile,
+)
+from rough_map.map.grid import GridMap, MapCrs
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "class_colours",
+    "class_layers",
+    "overview_factors",
+    "rasterio_crs",
+    "value_layers",
+    "write_class_geotiff",
+    "write_values_geotiff",
+]
+
+#: WKT of the engineering CRS of a local frame without geodetic origin.
+LOCAL_WKT = (
+    'LOCAL_CS["rough_map local frame (x east, y north)",LOCAL_DATUM["rough_map local",0],'
+    'UNIT["metre",1],AXIS["Easting",EAST],AXIS["Northing",NORTH]]'
+)
+
+
+def rasterio_crs(crs: MapCrs) -> Any:
+    """The :class:`rasterio.crs.CRS` of a map's CRS (see the module docstring)."""
+    from rasterio.crs import CRS
+
+    if crs.epsg is not None:
+        return CRS.from_epsg(crs.epsg)
+    proj = crs.proj_string()
+    return CRS.from_wkt(LOCAL_WKT) if proj is None else CRS.from_proj4(proj)
+
+
+def value_layers(grid: GridMap) -> list[str]:
+    """The layers of the float file, in band order: :data:`LEADING_BANDS`, then the other
+    ``kind="value"`` layers in the map's order."""
+    exported = [n for n in grid.layers if grid.info(n).kind == "value"]
+    return [n for n in LEADING_BANDS if n in exported] + [
+        n for n in exported if n not in LEADING_BANDS
+    ]
+
+
+def class_layers(grid: GridMap) -> list[str]:
+    """The ``kind="class"`` layers (each gets a uint8 file)."""
+    return [n for n in grid.layers if grid.info(n).kind == "class"]
+
+
+def overview_factors(shape: tuple[int, int], min_size: int = 16) -> list[int]:
+    """Decimation factors 2, 4, ... until the raster is at most ``min_size`` pixels
+    across (at least ``[2]``)."""
+    biggest = max(shape)
+    levels = max(1, math.ceil(math.log2(max(biggest, 2) / max(min_size, 1))))
+    return [2**k for k in range(1, levels + 1)]
+
+
+def class_colours(names: tuple[str, ...] | list[str]) -> dict[int, tuple[int, int, int, int]]:
+    """Colour table ``{index: (r, g, b, a)}`` of class names; 255 (unknown) transparent."""
+    from matplotlib import colormaps
+
+    tab = colormaps["tab10"]
+    table: dict[int, tuple[int, int, int, int]] = {}
+    for i, name in enumerate(names):
+        rgb = CLASS_COLOURS.get(name)
+        if rgb is None:
+            rgba = tab(i % 10)
+            rgb = tuple(int(round(255 * v)) for v in rgba[:3])  # type: ignore[assignment]
+        table[i] = (*rgb, 255)  # type: ignore[assignment]
+    table[CLASS_NODATA] = (0, 0, 0, 0)
+    return table
+
+
+def _dataset_tags(grid: GridMap) -> dict[str, str]:
+    crs = grid.crs
+    tags = {
+        "software": f"rough_map {__version__}",
+        "layers": json.dumps([n for n in grid.layers if grid.info(n).kind != "internal"]),
+        "crs_code": crs.code,
+        "frame_id": grid.geometry.frame_id,
+        "resolution_m": repr(grid.resolution),
+    }
+    if crs.origin is not None:
+        tags["geodetic_origin"] = json.dumps(list(crs.origin))
+    for key in ("class_names", "level_names"):
+        if grid.attrs.get(key):
+            tags[key] = json.dumps(list(grid.attrs[key]))
+    if grid.attrs.get("name"):
+        tags["traverse"] = str(grid.attrs["name"])
+    if "class_prior" in grid.attrs:
+        tags["class_prior"] = repr(float(grid.attrs["class_prior"]))
+    return tags
+
+
+def _creation_options(profile: dict[str, Any], driver: str) -> dict[str, Any]:
+    opts: dict[str, Any] = {"COMPRESS": profile["compress"]}
+    bs = int(profile["blocksize"])
+    if driver == "COG":
+        opts.update(
+            BLOCKSIZE=bs,
+            PREDICTOR=profile["predictor"],
+            OVERVIEWS="FORCE_USE_EXISTING",
+            BIGTIFF="IF_SAFER",
+        )
+    else:
+        floating = np.dtype(profile["dtype"]).kind == "f"
+        predictor = {"YES": 3 if floating else 2, "NO": 1}.get(
+            str(profile["predictor"]).upper(), profile["predictor"]
+        )
+        opts.update(
+            TILED="YES",
+            BLOCKXSIZE=bs,
+            BLOCKYSIZE=bs,
+            PREDICTOR=predictor,
+            COPY_SRC_OVERVIEWS="YES",
+            BIGTIFF="IF_SAFER",
+        )
+    return opts
+
+
+def _write(
+    grid: GridMap,
+    path: str | Path,
+    bands: np.ndarray,
+    profile: dict[str, Any],
+    describe: Any,
+) -> Path:
+    """Write ``bands`` (count, rows, cols; north-up) through an in-memory GTiff with
+    overviews, copied to ``path`` as COG (or tiled GTiff)."""
+    import rasterio
+    from rasterio.enums import Resampling
+    from rasterio.io import MemoryFile
+    from rasterio.shutil import copy as rio_copy
+    from rasterio.transform import Affine
+
+    from rough_map.io.pointcloud import atomic_output
+
+    count, height, width = bands.shape
+    if height == 0 or width == 0:
+        raise InputError(f"cannot write an empty map of shape {grid.shape}")
+    driver = profile["driver"]
+    with rasterio.Env() as env:
+        if driver == "COG" and "COG" not in env.drivers():
+            log.info("GDAL has no COG driver; writing a tiled GTiff with overviews")
+            driver = "GTiff"
+    path = Path(path)
+    with MemoryFile() as mem:
+        with mem.open(
+            driver="GTiff",
+            width=width,
+            height=height,
+            count=count,
+            dtype=profile["dtype"],
+            crs=rasterio_crs(grid.crs),
+            transform=Affine.from_gdal(*grid.geometry.transform()),
+            nodata=profile["nodata"],
+        ) as ds:
+            ds.write(bands)
+            ds.update_tags(**_dataset_tags(grid))
+            describe(ds)
+            ds.build_overviews(
+                overview_factors((height, width), int(profile["overview_min_size"])),
+                Resampling[profile["overview_resampling"]],
+            )
+            ds.update_tags(ns="rio_overview", resampling=profile["overview_resampling"])
+        with mem.open() as src, atomic_output(path) as tmp:
+            rio_copy(src, tmp, driver=driver, **_creation_options(profile, driver))
+    log.info("wrote %s (%d band(s) of %d x %d cells, %s)", path, count, height, width, driver)
+    return path
+
+
+def write_values_geotiff(
+    grid: GridMap,
+    path: str | Path,
+    *,
+    layers: list[str] | tuple[str, ...] | None = None,
+    profile: dict[str, Any] | None = None,
+) -> Path:
+    """Write the value layers of a map as a float32 COG, one band per layer.
+
+    Parameters
+    ----------
+    grid : GridMap
+        The map.
+    path : str or Path
+        The ``.tif`` to write (its folder must exist).
+    layers : sequence of str, optional
+        Layers, in band order (default :func:`value_layers`).
+    profile : dict, optional
+        Overrides of :class:`~rough_map.export.profiles.ValuesProfile`.
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
+    prof = ValuesProfile(profile or {})
+    names = list(layers) if layers is not None else value_layers(grid)
+    if not names:
+        raise InputError("the map has no value layer to write")
+    bands = np.stack([np.flipud(grid[n]) for n in names]).astype(prof["dtype"])
+
+    def describe(ds: Any) -> None:
+        for b, name in enumerate(names, start=1):
+            info = grid.info(name)
+            ds.set_band_description(b, name)
+            tags = {"units": info.units, "long_name": info.description, "layer": name}
+            if info.categories:
+                tags["categories"] = json.dumps(list(info.categories))
+                tags.update({f"VALUE_{i}": c for i, c in enumerate(info.categories)})
+            ds.update_tags(b, **tags)
+
+    return _write(grid, path, bands, prof, describe)
+
+
+def write_class_geotiff(
+    grid: GridMap,
+    path: str | Path,
+    layer: str = "class",
+    *,
+    profile: dict[str, Any] | None = None,
+) -> Path:
+    """Write a class layer as a uint8 COG with a colour table (nodata 255 = unknown).
+
+    Parameters
+    ----------
+    grid : GridMap
+        The map.
+    path : str or Path
+        The ``.tif`` to write.
+    layer : str
+        A ``kind="class"`` layer (``class`` or ``far_class``).
+    profile : dict, optional
+        Overrides of :class:`~rough_map.export.profiles.ClassProfile`.
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
+    prof = ClassProfile(profile or {})
+    info = grid.info(layer)
+    names = info.categories
+    if info.kind != "class" or not names:
+        raise InputError(f"layer {layer!r} is not a class layer with category names")
+    if len(names) >= CLASS_NODATA:
+        raise InputError(f"{len(names)} classes do not fit a uint8 band with nodata 255")
+    values = np.flipud(grid[layer])
+    band = np.where(np.isfinite(values), values, CLASS_NODATA).astype(np.uint8)
+
+    def describe(ds: Any) -> None:
+        ds.set_band_description(1, layer)
+        ds.update_tags(
+            1,
+            units="1",
+            long_name=info.description,
+            layer=layer,
+            class_names=json.dumps(list(names)),
+            **{f"CLASS_{i}": c for i, c in enumerate(names)},
+            **{f"CLASS_{CLASS_NODATA}": "unknown"},
+        )
+        ds.write_colormap(1, class_colours(names))
+
+    return _write(grid, path, band[None], prof, describe)

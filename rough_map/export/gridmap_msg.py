@@ -1,0 +1,236 @@
+"""A map as a ROS 2 ``grid_map_msgs/msg/GridMap`` in an MCAP bag (rosbags), for RViz and
+Foxglove.
+
+The message definitions are those of grid_map's ROS 2 packages, registered in a rosbags
+typestore with :func:`rosbags.typesys.get_types_from_msg` (no ROS install needed). Each
+layer is a ``std_msgs/Float32MultiArray`` in grid_map's layout: the matrix of shape
+``(n_x, n_y)`` of :func:`rough_map.map.grid.to_grid_map` (index (0, 0) at the largest x and
+y), stored column-major (``layout.dim[0]`` is ``column_index``), NaN unknown, start
+indices 0.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rough_map.errors import FileFormatError, InputError
+from rough_map.map.grid import GridMap, GridMapData, to_grid_map
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "GRID_MAP",
+    "GRID_MAP_INFO",
+    "grid_map_message",
+    "grid_map_typestore",
+    "message_to_grid_map",
+    "read_gridmap_bag",
+    "write_gridmap_bag",
+]
+
+GRID_MAP = "grid_map_msgs/msg/GridMap"
+GRID_MAP_INFO = "grid_map_msgs/msg/GridMapInfo"
+
+#: grid_map_msgs/msg/GridMapInfo (ROS 2).
+GRID_MAP_INFO_MSG = """\
+# Resolution of the grid [m/cell].
+float64 resolution
+# Length in x-direction [m].
+float64 length_x
+# Length in y-direction [m].
+float64 length_y
+# Pose of the grid map center in the frame defined in `header` [m].
+geometry_msgs/Pose pose
+"""
+
+#: grid_map_msgs/msg/GridMap (ROS 2).
+GRID_MAP_MSG = """\
+# Header (time and frame)
+std_msgs/Header header
+# Grid map header
+grid_map_msgs/GridMapInfo info
+# Grid map layer names.
+string[] layers
+# Grid map basic layer names (optional).
+string[] basic_layers
+# Grid map data.
+std_msgs/Float32MultiArray[] data
+# Row start index (default 0).
+uint16 outer_start_index
+# Column start index (default 0).
+uint16 inner_start_index
+"""
+
+#: Default topic of the map.
+TOPIC = "/rough_map/grid_map"
+
+
+def grid_map_typestore(store: Any = None) -> Any:
+    """A rosbags typestore (default: ROS 2 Humble) that knows the grid_map messages."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store = store or get_typestore(Stores.ROS2_HUMBLE)
+    if GRID_MAP not in store.types:
+        types = get_types_from_msg(GRID_MAP_INFO_MSG, GRID_MAP_INFO)
+        types.update(get_types_from_msg(GRID_MAP_MSG, GRID_MAP))
+        store.register(types)
+    return store
+
+
+def grid_map_message(data: GridMapData, typestore: Any, *, stamp_ns: int = 0) -> Any:
+    """A ``grid_map_msgs/msg/GridMap`` message of a map in grid_map's conventions.
+
+    Parameters
+    ----------
+    data : GridMapData
+        The map (:func:`rough_map.map.grid.to_grid_map`).
+    typestore : rosbags Typestore
+        From :func:`grid_map_typestore`.
+    stamp_ns : int
+        Header stamp, ns since the epoch.
+    """
+    t = typestore.types
+    nx, ny = data.size
+    dims = [
+        t["std_msgs/msg/MultiArrayDimension"](label="column_index", size=ny, stride=nx * ny),
+        t["std_msgs/msg/MultiArrayDimension"](label="row_index", size=nx, stride=nx),
+    ]
+    arrays = [
+        t["std_msgs/msg/Float32MultiArray"](
+            layout=t["std_msgs/msg/MultiArrayLayout"](dim=dims, data_offset=0),
+            data=np.asarray(m, dtype=np.float32).ravel(order="F"),
+        )
+        for m in data.layers.values()
+    ]
+    pose = t["geometry_msgs/msg/Pose"](
+        position=t["geometry_msgs/msg/Point"](x=data.position[0], y=data.position[1], z=0.0),
+        orientation=t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+    )
+    header = t["std_msgs/msg/Header"](
+        stamp=t["builtin_interfaces/msg/Time"](sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9),
+        frame_id=data.frame_id,
+    )
+    info = t[GRID_MAP_INFO](
+        resolution=data.resolution, length_x=data.length[0], length_y=data.length[1], pose=pose
+    )
+    return t[GRID_MAP](
+        header=header,
+        info=info,
+        layers=list(data.layers),
+        basic_layers=list(data.basic_layers),
+        data=arrays,
+        outer_start_index=0,
+        inner_start_index=0,
+    )
+
+
+def message_to_grid_map(msg: Any) -> GridMapData:
+    """The :class:`~rough_map.map.grid.GridMapData` of a deserialized GridMap message."""
+    info = msg.info
+    res = float(info.resolution)
+    nx, ny = int(round(info.length_x / res)), int(round(info.length_y / res))
+    if msg.outer_start_index or msg.inner_start_index:
+        raise InputError("circularly shifted grid maps (start index != 0) are not supported")
+    layers = {}
+    for name, arr in zip(msg.layers, msg.data, strict=True):
+        values = np.asarray(arr.data, dtype=np.float64)
+        if values.size != nx * ny:
+            raise InputError(f"layer {name!r} has {values.size} values; expected {nx * ny}")
+        row_major = bool(arr.layout.dim) and arr.layout.dim[0].label == "row_index"
+        layers[name] = values.reshape(nx, ny) if row_major else values.reshape(ny, nx).T
+    return GridMapData(
+        frame_id=msg.header.frame_id,
+        resolution=res,
+        position=(float(info.pose.position.x), float(info.pose.position.y)),
+        length=(float(info.length_x), float(info.length_y)),
+        layers=layers,
+        basic_layers=tuple(msg.basic_layers),
+    )
+
+
+def write_gridmap_bag(
+    grid: GridMap,
+    path: str | Path,
+    *,
+    topic: str = TOPIC,
+    layers: list[str] | tuple[str, ...] | None = None,
+    stamp_ns: int | None = None,
+) -> Path:
+    """Write a map as one GridMap message in a ROS 2 bag with MCAP storage.
+
+    Parameters
+    ----------
+    grid : GridMap
+        The map.
+    path : str or Path
+        The bag folder to write (replaced if it exists; its parent must exist).
+    topic : str
+        Topic of the message.
+    layers : sequence of str, optional
+        Layers to publish (default: every layer that is not internal).
+    stamp_ns : int, optional
+        Message time, ns since the epoch (default: the latest ``last_seen`` of the map,
+        else 0).
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise FileFormatError(path, f"cannot write: folder {path.parent} does not exist")
+    if stamp_ns is None:
+        seen = grid["last_seen"] if "last_seen" in grid else np.array([np.nan])
+        latest = float(np.nanmax(seen)) if np.any(np.isfinite(seen)) else 0.0
+        stamp_ns = int(round(max(latest, 0.0) * 1e9)) if math.isfinite(latest) else 0
+    store = grid_map_typestore()
+    msg = grid_map_message(to_grid_map(grid, layers), store, stamp_ns=stamp_ns)
+    with tempfile.TemporaryDirectory(dir=path.parent, prefix=f".{path.name}.") as tmp:
+        staged = Path(tmp) / path.name
+        with Writer(staged, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+            conn = writer.add_connection(topic, GRID_MAP, typestore=store)
+            writer.write(conn, stamp_ns, store.serialize_cdr(msg, GRID_MAP))
+        if path.exists():
+            old = Path(tmp) / "replaced"
+            os.replace(path, old)
+        os.replace(staged, path)
+    log.info("wrote %s (%s on %s)", path, GRID_MAP, topic)
+    return path
+
+
+def read_gridmap_bag(path: str | Path, topic: str | None = None) -> list[GridMapData]:
+    """The GridMap messages of a ROS 2 bag, in time order.
+
+    Parameters
+    ----------
+    path : str or Path
+        The bag folder.
+    topic : str, optional
+        Only this topic (default: every GridMap connection).
+    """
+    from rosbags.rosbag2 import Reader, ReaderError
+
+    store = grid_map_typestore()
+    try:
+        with Reader(path) as reader:
+            conns = [
+                c
+                for c in reader.connections
+                if c.msgtype == GRID_MAP and (topic is None or c.topic == topic)
+            ]
+            return [
+                message_to_grid_map(store.deserialize_cdr(raw, GRID_MAP))
+                for _, _, raw in reader.messages(connections=conns)
+            ]
+    except (ReaderError, OSError, KeyError) as err:
+        raise FileFormatError(path, f"could not read grid maps: {err}") from None

@@ -1,0 +1,127 @@
+"""Default export profiles, as data (after ``rasterio.profiles``).
+
+A GeoTIFF keeps one data type for all its bands (and a colour table only on band 1 of a
+one-band Byte image), so a map is written as
+
+* ``<name>.tif``: float32, one band per value layer (:data:`LEADING_BANDS` first, then the
+  class probabilities and the far-field layers), nodata NaN;
+* ``<name>_class.tif`` (and ``<name>_far_class.tif``): uint8, one band of class indices
+  with a colour table, nodata 255.
+
+Both are Cloud-Optimized GeoTIFFs with internal overviews.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import UserDict
+from typing import Any, ClassVar
+
+__all__ = [
+    "CLASS_COLOURS",
+    "CLASS_NODATA",
+    "LEADING_BANDS",
+    "LEVEL_COLOURS",
+    "PNG_STYLE",
+    "ClassProfile",
+    "Profile",
+    "ValuesProfile",
+]
+
+
+class Profile(UserDict):
+    """Export options: the class ``defaults`` overridden by the given items."""
+
+    defaults: ClassVar[dict[str, Any]] = {}
+
+    def __init__(self, data: dict[str, Any] | None = None, **kwds: Any) -> None:
+        super().__init__(dict(self.defaults))
+        self.update(data or {})
+        self.update(kwds)
+
+
+class ValuesProfile(Profile):
+    """The float32 file of value layers (R, w, sigma_R, sigma_w, level, ...).
+
+    Keys: ``driver`` (``"COG"``; ``"GTiff"`` with tiles and copied overviews where GDAL has
+    no COG driver), ``dtype``, ``nodata``, ``compress``, ``predictor`` (COG: ``"YES"``
+    picks the floating-point predictor), ``blocksize`` (tile side, pixels),
+    ``overview_resampling`` (a :class:`rasterio.enums.Resampling` name) and
+    ``overview_min_size`` (overviews halve the raster until it is at most this many
+    pixels across; at least one level is always built).
+    """
+
+    defaults: ClassVar[dict[str, Any]] = {
+        "driver": "COG",
+        "dtype": "float32",
+        "nodata": math.nan,
+        "compress": "DEFLATE",
+        "predictor": "YES",
+        "blocksize": 256,
+        "overview_resampling": "average",
+        "overview_min_size": 16,
+    }
+
+
+class ClassProfile(Profile):
+    """The uint8 file of a class layer (colour table, nodata 255, mode overviews)."""
+
+    defaults: ClassVar[dict[str, Any]] = {
+        "driver": "COG",
+        "dtype": "uint8",
+        "nodata": 255,
+        "compress": "DEFLATE",
+        "predictor": "NO",
+        "blocksize": 256,
+        "overview_resampling": "mode",
+        "overview_min_size": 16,
+    }
+
+
+#: Nodata value of the uint8 class files: "unknown".
+CLASS_NODATA = 255
+
+#: Value layers written first, in this order, when the map has them; other exported value
+#: layers follow in the map's order.
+LEADING_BANDS: tuple[str, ...] = (
+    "R",
+    "w",
+    "sigma_R",
+    "sigma_w",
+    "level",
+    "count",
+    "last_seen",
+)
+
+#: Colours (RGB 0-255) of the terrain classes of :mod:`rough_map.terrain` (the same as
+#: ``rough_map.export.figures``); other classes take the matplotlib ``tab10`` colours.
+CLASS_COLOURS: dict[str, tuple[int, int, int]] = {
+    "concrete": (160, 160, 160),
+    "dirt_road": (196, 160, 100),
+    "gravel": (90, 110, 140),
+    "compact_soil": (140, 100, 60),
+    "ploughed_soil": (80, 50, 30),
+}
+
+#: Colours of the roughness levels, smoothest first (paper Fig. 19: green to red).
+LEVEL_COLOURS: tuple[tuple[int, int, int], ...] = ((44, 160, 44), (255, 191, 0), (214, 39, 40))
+
+#: PNG rendering: figure size (in), dpi, colour maps per layer (default ``viridis``) and
+#: the layers drawn with a logarithmic colour scale.
+PNG_STYLE: dict[str, Any] = {
+    "figsize": (8.0, 4.5),
+    "dpi": 120,
+    "cmap": {
+        "R": "magma",
+        "sigma_R": "magma",
+        "w": "cividis",
+        "sigma_w": "cividis",
+        "count": "Greys",
+        "far_count": "Greys",
+        "last_seen": "plasma",
+        "far_last_seen": "plasma",
+    },
+    "default_cmap": "viridis",
+    "log_layers": ("R", "sigma_R"),
+    "track_colour": "tab:blue",
+}

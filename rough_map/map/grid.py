@@ -1,0 +1,665 @@
+"""Grid map: a geometry (resolution, origin, size, CRS) plus named float layers.
+
+Conventions
+-----------
+* **World frame**: x east (or local x), y north (or local y), metres, as everywhere in
+  rough_map (:mod:`rough_map.types`). The CRS of the map says what "world" means
+  (:class:`MapCrs`).
+* **Geometry**: ``resolution`` is the side of a square cell in m. ``origin`` is the world
+  (x, y) in m of the *south-west corner* of the map, i.e. the lower-left corner of cell
+  ``[0, 0]``. ``shape`` is ``(n_rows, n_cols)``. Maps built by rough_map keep ``origin`` on
+  the lattice ``k * resolution`` (k integer), so cell edges of maps of the same resolution
+  line up, and growing a map only ever adds whole cells.
+* **Axis order**: layers are arrays indexed ``[row, col]``. The row index increases
+  northwards (+y), the column index eastwards (+x): row 0 is the *southern* edge of the map
+  (plot with ``imshow(..., origin="lower")``). The centre of cell ``[i, j]`` is at
+  ``(origin_x + (j + 0.5) * resolution, origin_y + (i + 0.5) * resolution)``. This is the
+  order of :class:`rough_map.types.HeightField` (whose ``origin`` is the centre of cell
+  ``[0, 0]``: see :meth:`GridMap.to_height_field`). GeoTIFF export flips the rows so that
+  files are north-up.
+* **Layers** are float64 arrays of the map's shape; NaN means unknown. Each layer carries
+  its units and a description (:class:`LayerInfo`). Accumulator layers that fusion keeps
+  (sums, Dirichlet evidence) are ``kind="internal"`` and are not exported.
+
+grid_map (ANYbotics) conventions, for :func:`to_grid_map` / :func:`from_grid_map`
+-------------------------------------------------------------------------------------
+``position`` is the map centre in the frame (m), ``length`` is ``(length_x, length_y)`` in
+m, the data matrix has shape ``(n_x, n_y)``, its index ``(0, 0)`` is the cell with the
+largest x and largest y, the row index increases along -x and the column index along -y.
+Exported maps have no circular-buffer shift (start index ``(0, 0)``). Hence
+``grid_map_matrix = layer[::-1, ::-1].T`` and ``layer = grid_map_matrix.T[::-1, ::-1]``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field, replace
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from rough_map.errors import InputError
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "GridGeometry",
+    "GridMap",
+    "GridMapData",
+    "LayerInfo",
+    "MapCrs",
+    "from_grid_map",
+    "to_grid_map",
+]
+
+#: Default margin in m added around the area a map has to cover when it is (re)allocated.
+DEFAULT_MARGIN = 2.0
+
+LayerKind = Literal["value", "class", "internal"]
+
+
+@dataclass(frozen=True)
+class MapCrs:
+    """The coordinate reference system of a map's world frame.
+
+    Attributes
+    ----------
+    code : str
+        ``"local"`` for a local metric frame (x east, y north), or ``"EPSG:<n>"`` for a
+        projected CRS whose units are metres.
+    origin : tuple of float, optional
+        ``(lat, lon, alt)`` in degrees, degrees and m (WGS84) of the origin of a local
+        frame. Only with ``code="local"``.
+    """
+
+    code: str = "local"
+    origin: tuple[float, float, float] | None = None
+
+    def __post_init__(self) -> None:
+        code = self.code.strip()
+        if code.lower() == "local":
+            object.__setattr__(self, "code", "local")
+        elif code.upper().startswith("EPSG:") and code[5:].strip().isdigit():
+            object.__setattr__(self, "code", f"EPSG:{int(code[5:])}")
+        else:
+            raise InputError(f"crs code must be 'local' or 'EPSG:<n>', got {self.code!r}")
+        if self.origin is not None:
+            if self.code != "local":
+                raise InputError("a geodetic origin is only meaningful with crs 'local'")
+            lat, lon, alt = (float(v) for v in self.origin)
+            if not (-90 <= lat <= 90 and -180 <= lon <= 180 and math.isfinite(alt)):
+                raise InputError(
+                    f"origin must be (lat, lon, alt) in deg, deg, m; got {self.origin}"
+                )
+            object.__setattr__(self, "origin", (lat, lon, alt))
+
+    @classmethod
+    def from_any(cls, value: Any) -> MapCrs:
+        """A :class:`MapCrs` from None (local), ``"local"``, ``"EPSG:32633"``, ``32633``,
+        another :class:`MapCrs`, or a traverse's :class:`rough_map.config.Crs`."""
+        if value is None:
+            return cls()
+        if isinstance(value, MapCrs):
+            return value
+        if isinstance(value, int | np.integer):
+            return cls(f"EPSG:{int(value)}")
+        if isinstance(value, str):
+            return cls(value)
+        code = getattr(value, "code", None)
+        if isinstance(code, str):
+            o = getattr(value, "origin", None)
+            origin = None if o is None else (float(o.lat), float(o.lon), float(o.alt))
+            return cls(code, origin)
+        raise InputError(f"cannot read a CRS from {value!r}")
+
+    @property
+    def epsg(self) -> int | None:
+        """The EPSG code, or None for a local frame."""
+        return None if self.code == "local" else int(self.code.split(":")[1])
+
+    def proj_string(self) -> str | None:
+        """A CRS definition for GIS tools: ``"EPSG:<n>"``; for a local frame with a geodetic
+        origin a transverse Mercator centred on it (x east, y north, m, scale 1 at the
+        origin); None for a local frame without origin (an engineering CRS)."""
+        if self.epsg is not None:
+            return self.code
+        if self.origin is None:
+            return None
+        lat, lon, _ = self.origin
+        return (
+            f"+proj=tmerc +lat_0={lat:.10f} +lon_0={lon:.10f} +k=1 +x_0=0 +y_0=0 "
+            "+ellps=WGS84 +units=m +no_defs"
+        )
+
+
+@dataclass(frozen=True)
+class GridGeometry:
+    """Where a grid map lies in the world (see the module docstring for conventions).
+
+    Attributes
+    ----------
+    resolution : float
+        Side of a cell in m.
+    origin : tuple of float
+        World (x, y) in m of the south-west corner of the map (lower-left corner of cell
+        ``[0, 0]``).
+    shape : tuple of int
+        ``(n_rows, n_cols)``: rows along +y (north), columns along +x (east).
+    crs : MapCrs
+        What the world frame is.
+    frame_id : str
+        Name of the world frame for ROS (``header.frame_id`` of a grid_map message).
+    """
+
+    resolution: float
+    origin: tuple[float, float] = (0.0, 0.0)
+    shape: tuple[int, int] = (1, 1)
+    crs: MapCrs = field(default_factory=MapCrs)
+    frame_id: str = "map"
+
+    def __post_init__(self) -> None:
+        r = self.resolution
+        if not (isinstance(r, int | float) and math.isfinite(r) and r > 0):
+            raise InputError(f"resolution must be a positive cell size in m, got {r!r}")
+        object.__setattr__(self, "resolution", float(r))
+        ox, oy = (float(v) for v in self.origin)
+        if not (math.isfinite(ox) and math.isfinite(oy)):
+            raise InputError(f"origin must be finite (x, y) in m, got {self.origin!r}")
+        object.__setattr__(self, "origin", (ox, oy))
+        rows, cols = (int(v) for v in self.shape)
+        if rows < 0 or cols < 0:
+            raise InputError(f"shape must be (n_rows, n_cols) >= 0, got {self.shape!r}")
+        object.__setattr__(self, "shape", (rows, cols))
+        object.__setattr__(self, "crs", MapCrs.from_any(self.crs))
+
+    @classmethod
+    def covering(
+        cls,
+        bounds: tuple[float, float, float, float],
+        resolution: float,
+        *,
+        margin: float = 0.0,
+        crs: Any = None,
+        frame_id: str = "map",
+    ) -> GridGeometry:
+        """The smallest lattice-aligned geometry covering ``bounds`` grown by ``margin``.
+
+        Parameters
+        ----------
+        bounds : tuple of float
+            ``(xmin, ymin, xmax, ymax)`` in m.
+        resolution : float
+            Cell size in m.
+        margin : float
+            Extra distance in m on every side.
+        crs, frame_id
+            As the attributes.
+        """
+        xmin, ymin, xmax, ymax = (float(v) for v in bounds)
+        if not (xmin <= xmax and ymin <= ymax):
+            raise InputError(f"bounds must be (xmin, ymin, xmax, ymax), got {bounds!r}")
+        if not (math.isfinite(margin) and margin >= 0):
+            raise InputError(f"margin must be a distance >= 0 in m, got {margin!r}")
+        res = float(resolution)
+        # lattice indices of the west, south, east and north edges
+        c0 = math.floor((xmin - margin) / res)
+        r0 = math.floor((ymin - margin) / res)
+        c1 = max(math.ceil((xmax + margin) / res), c0 + 1)
+        r1 = max(math.ceil((ymax + margin) / res), r0 + 1)
+        return cls(res, (c0 * res, r0 * res), (r1 - r0, c1 - c0), crs, frame_id)
+
+    # -- extent -------------------------------------------------------------------------
+
+    @property
+    def length(self) -> tuple[float, float]:
+        """``(length_x, length_y)``: size of the map in m."""
+        return self.shape[1] * self.resolution, self.shape[0] * self.resolution
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """``(xmin, ymin, xmax, ymax)`` of the map's outer edges, m."""
+        lx, ly = self.length
+        return self.origin[0], self.origin[1], self.origin[0] + lx, self.origin[1] + ly
+
+    @property
+    def center(self) -> tuple[float, float]:
+        """World (x, y) of the map centre, m (grid_map's ``position``)."""
+        lx, ly = self.length
+        return self.origin[0] + lx / 2, self.origin[1] + ly / 2
+
+    # -- cells <-> world ----------------------------------------------------------------
+
+    def xy(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """World x (per column) and y (per row) of the cell centres, m."""
+        res = self.resolution
+        return (
+            self.origin[0] + res * (np.arange(self.shape[1]) + 0.5),
+            self.origin[1] + res * (np.arange(self.shape[0]) + 0.5),
+        )
+
+    def cell_center(
+        self, rows: ArrayLike, cols: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """World (x, y) in m of the centres of cells ``[rows, cols]``."""
+        res = self.resolution
+        x = self.origin[0] + (np.asarray(cols, float) + 0.5) * res
+        y = self.origin[1] + (np.asarray(rows, float) + 0.5) * res
+        return x, y
+
+    def cell_of(self, x: ArrayLike, y: ArrayLike) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """(rows, cols) of the cells holding world points (x, y) in m.
+
+        Indices may fall outside the map; see :meth:`inside`.
+        """
+        res = self.resolution
+        cols = np.floor((np.asarray(x, float) - self.origin[0]) / res).astype(np.int64)
+        rows = np.floor((np.asarray(y, float) - self.origin[1]) / res).astype(np.int64)
+        return rows, cols
+
+    def inside(self, rows: ArrayLike, cols: ArrayLike) -> NDArray[np.bool_]:
+        """Whether cell indices are within the map."""
+        r, c = np.asarray(rows), np.asarray(cols)
+        return (r >= 0) & (r < self.shape[0]) & (c >= 0) & (c < self.shape[1])
+
+    def contains(self, bounds: tuple[float, float, float, float]) -> bool:
+        """Whether the box ``(xmin, ymin, xmax, ymax)`` in m lies within the map."""
+        x0, y0, x1, y1 = self.bounds
+        return bounds[0] >= x0 and bounds[1] >= y0 and bounds[2] <= x1 and bounds[3] <= y1
+
+    def grown_to_cover(
+        self, bounds: tuple[float, float, float, float], margin: float
+    ) -> tuple[GridGeometry, tuple[int, int]]:
+        """A larger geometry covering this one and ``bounds`` (+ ``margin`` m), on this
+        map's lattice.
+
+        Returns
+        -------
+        geometry : GridGeometry
+            The new geometry (this one if ``bounds`` is already inside).
+        offset : tuple of int
+            ``(rows, cols)`` added on the south and west sides: old cell ``[i, j]`` is new
+            cell ``[i + offset[0], j + offset[1]]``.
+        """
+        if self.contains(bounds):
+            return self, (0, 0)
+        res = self.resolution
+        x0, y0, x1, y1 = self.bounds
+        add_w = max(0, math.ceil((x0 - (bounds[0] - margin)) / res)) if bounds[0] < x0 else 0
+        add_s = max(0, math.ceil((y0 - (bounds[1] - margin)) / res)) if bounds[1] < y0 else 0
+        add_e = max(0, math.ceil(((bounds[2] + margin) - x1) / res)) if bounds[2] > x1 else 0
+        add_n = max(0, math.ceil(((bounds[3] + margin) - y1) / res)) if bounds[3] > y1 else 0
+        geometry = replace(
+            self,
+            origin=(self.origin[0] - add_w * res, self.origin[1] - add_s * res),
+            shape=(self.shape[0] + add_s + add_n, self.shape[1] + add_w + add_e),
+        )
+        return geometry, (add_s, add_w)
+
+    def transform(self) -> tuple[float, float, float, float, float, float]:
+        """GDAL geotransform of the north-up raster (rows flipped), as
+        ``(x_west, res, 0, y_north, 0, -res)``."""
+        x0, _, _, y1 = self.bounds
+        return (x0, self.resolution, 0.0, y1, 0.0, -self.resolution)
+
+
+@dataclass(frozen=True)
+class LayerInfo:
+    """What a layer holds.
+
+    Attributes
+    ----------
+    units : str
+        Units of the values (``"m^3/rad"``, ``"1"`` for dimensionless, ``"s"``, ...).
+    description : str
+        One line saying what the layer is.
+    fill : float
+        Value of cells nothing has written (NaN: unknown; 0 for counts and sums).
+    kind : {"value", "class", "internal"}
+        ``"class"``: indices into ``categories`` (NaN unknown); ``"internal"``: a fusion
+        accumulator, not exported.
+    categories : tuple of str
+        Names of the values 0, 1, ... of a class (or level) layer.
+    """
+
+    units: str
+    description: str = ""
+    fill: float = math.nan
+    kind: LayerKind = "value"
+    categories: tuple[str, ...] = ()
+
+
+class GridMap:
+    """A grid geometry plus named float layers (NaN: unknown).
+
+    Parameters
+    ----------
+    geometry : GridGeometry
+        Where the map lies.
+    attrs : mapping, optional
+        Free metadata (class names, traverse name, ...); kept through growth and copies.
+
+    Examples
+    --------
+    >>> g = GridMap(GridGeometry(0.1, (0.0, 0.0), (20, 30)))
+    >>> _ = g.add_layer("R", units="m^3/rad", description="overall energy")
+    >>> g["R"].shape
+    (20, 30)
+    """
+
+    def __init__(self, geometry: GridGeometry, *, attrs: Mapping[str, Any] | None = None):
+        self._geometry = geometry
+        self._data: dict[str, NDArray[np.float64]] = {}
+        self._info: dict[str, LayerInfo] = {}
+        self.attrs: dict[str, Any] = dict(attrs or {})
+
+    def __repr__(self) -> str:
+        g = self._geometry
+        return (
+            f"GridMap(shape={g.shape}, resolution={g.resolution} m, origin={g.origin}, "
+            f"crs={g.crs.code}, layers={list(self._data)})"
+        )
+
+    # -- geometry -----------------------------------------------------------------------
+
+    @property
+    def geometry(self) -> GridGeometry:
+        """The map's :class:`GridGeometry`."""
+        return self._geometry
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(n_rows, n_cols)`` of every layer."""
+        return self._geometry.shape
+
+    @property
+    def resolution(self) -> float:
+        """Cell size in m."""
+        return self._geometry.resolution
+
+    @property
+    def crs(self) -> MapCrs:
+        """CRS of the world frame."""
+        return self._geometry.crs
+
+    # -- layers -------------------------------------------------------------------------
+
+    @property
+    def layers(self) -> tuple[str, ...]:
+        """Names of the layers, in creation order."""
+        return tuple(self._data)
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._data
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._data)
+
+    def add_layer(
+        self,
+        name: str,
+        *,
+        units: str,
+        description: str = "",
+        fill: float = math.nan,
+        kind: LayerKind = "value",
+        categories: tuple[str, ...] = (),
+        data: ArrayLike | None = None,
+    ) -> NDArray[np.float64]:
+        """Create layer ``name`` (filled with ``fill``, or ``data``) and return its array.
+
+        Parameters
+        ----------
+        name : str
+            Layer name; must be new.
+        units, description, fill, kind, categories
+            See :class:`LayerInfo`.
+        data : array_like, optional
+            Initial values, broadcast to the map's shape.
+        """
+        if not name or not isinstance(name, str):
+            raise InputError(f"a layer name must be a non-empty string, got {name!r}")
+        if name in self._data:
+            raise InputError(f"layer {name!r} exists already")
+        if kind not in ("value", "class", "internal"):
+            raise InputError(f"kind must be 'value', 'class' or 'internal', got {kind!r}")
+        arr = np.full(self.shape, fill, dtype=np.float64)
+        if data is not None:
+            arr[...] = self._check_shape(name, data)
+        self._data[name] = arr
+        self._info[name] = LayerInfo(units, description, float(fill), kind, tuple(categories))
+        return arr
+
+    def __getitem__(self, name: str) -> NDArray[np.float64]:
+        """The array of layer ``name``, shape :attr:`shape`, in the layer's units
+        (:meth:`units`); a view that writes go through to."""
+        try:
+            return self._data[name]
+        except KeyError:
+            raise InputError(
+                f"no layer {name!r}; the map has {list(self._data) or 'no layers'}"
+            ) from None
+
+    def __setitem__(self, name: str, value: ArrayLike) -> None:
+        """Overwrite existing layer ``name`` with ``value`` (broadcast)."""
+        self[name][...] = self._check_shape(name, value)
+
+    def _check_shape(self, name: str, value: ArrayLike) -> NDArray[np.float64]:
+        arr = np.asarray(value, dtype=np.float64)
+        try:
+            np.broadcast_to(arr, self.shape)
+        except ValueError:
+            raise InputError(
+                f"layer {name!r}: values of shape {arr.shape} do not fit a map of shape "
+                f"{self.shape}"
+            ) from None
+        return arr
+
+    def info(self, name: str) -> LayerInfo:
+        """The :class:`LayerInfo` (units, description, ...) of layer ``name``."""
+        self[name]
+        return self._info[name]
+
+    def units(self, name: str) -> str:
+        """Units of layer ``name``."""
+        return self.info(name).units
+
+    def drop_layer(self, name: str) -> None:
+        """Remove layer ``name``."""
+        self[name]
+        del self._data[name], self._info[name]
+
+    # -- growth -------------------------------------------------------------------------
+
+    def ensure_covers(
+        self, bounds: tuple[float, float, float, float], *, margin: float = DEFAULT_MARGIN
+    ) -> tuple[int, int]:
+        """Grow the map (reallocating every layer) so that it covers ``bounds``.
+
+        New cells hold each layer's fill value; existing cells keep their world position
+        and values. The origin stays on the map's lattice.
+
+        Parameters
+        ----------
+        bounds : tuple of float
+            ``(xmin, ymin, xmax, ymax)`` in m.
+        margin : float
+            Extra room in m on the sides that grow, so that a map following a vehicle is
+            not reallocated at every step.
+
+        Returns
+        -------
+        tuple of int
+            ``(rows, cols)`` added on the south and west sides (indices of existing cells
+            shift by this much); ``(0, 0)`` if the map did not grow southwards or westwards.
+        """
+        geometry, (di, dj) = self._geometry.grown_to_cover(bounds, margin)
+        if geometry is self._geometry:
+            return 0, 0
+        rows, cols = self.shape
+        for name, old in self._data.items():
+            new = np.full(geometry.shape, self._info[name].fill, dtype=np.float64)
+            new[di : di + rows, dj : dj + cols] = old
+            self._data[name] = new
+        log.debug("map grown from %s to %s cells", self.shape, geometry.shape)
+        self._geometry = geometry
+        return di, dj
+
+    def cells_at(
+        self, x: ArrayLike, y: ArrayLike, *, grow: bool = True, margin: float = DEFAULT_MARGIN
+    ) -> NDArray[np.int64]:
+        """Cell indices ``(N, 2)`` as ``(row, col)`` of world points (x, y) in m.
+
+        With ``grow`` the map first grows to hold every point (earlier indices may then
+        shift: see :meth:`ensure_covers`); without it, points outside raise.
+        """
+        xa, ya = np.broadcast_arrays(np.asarray(x, float).ravel(), np.asarray(y, float).ravel())
+        if not (np.all(np.isfinite(xa)) and np.all(np.isfinite(ya))):
+            raise InputError("x and y must be finite positions in m")
+        if grow and xa.size:
+            self.ensure_covers((xa.min(), ya.min(), xa.max(), ya.max()), margin=margin)
+        rows, cols = self._geometry.cell_of(xa, ya)
+        if not np.all(self._geometry.inside(rows, cols)):
+            raise InputError("some points lie outside the map; pass grow=True")
+        return np.column_stack([rows, cols])
+
+    # -- conversions --------------------------------------------------------------------
+
+    def copy(self) -> GridMap:
+        """A deep copy."""
+        out = GridMap(self._geometry, attrs=self.attrs)
+        out._data = {k: v.copy() for k, v in self._data.items()}
+        out._info = dict(self._info)
+        return out
+
+    def to_height_field(self, layer: str) -> Any:
+        """Layer ``layer`` as a :class:`rough_map.types.HeightField` (same axis order;
+        its origin is the centre of cell ``[0, 0]``), e.g. for bilinear sampling."""
+        from rough_map.types import HeightField
+
+        res = self.resolution
+        x0, y0 = self._geometry.origin
+        return HeightField(self[layer].copy(), res, (x0 + res / 2, y0 + res / 2))
+
+
+# ------------------------------------------------------------------------------------------
+# grid_map (ANYbotics) conventions
+# ------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class GridMapData:
+    """A map in grid_map's conventions (what a ``grid_map_msgs/GridMap`` carries).
+
+    Attributes
+    ----------
+    frame_id : str
+        Frame of ``position``.
+    resolution : float
+        Cell size in m.
+    position : tuple of float
+        World (x, y) in m of the map centre.
+    length : tuple of float
+        ``(length_x, length_y)`` in m.
+    layers : dict of str to ndarray
+        Each of shape ``(n_x, n_y)``; index ``(0, 0)`` is the cell with the largest x and
+        largest y, rows go along -x, columns along -y; NaN unknown.
+    basic_layers : tuple of str
+        Layers that must be valid for a cell to be valid.
+    """
+
+    frame_id: str
+    resolution: float
+    position: tuple[float, float]
+    length: tuple[float, float]
+    layers: dict[str, NDArray[np.float64]]
+    basic_layers: tuple[str, ...] = ()
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """``(n_x, n_y)``: grid_map's size (rows, columns of each matrix)."""
+        return (
+            int(round(self.length[0] / self.resolution)),
+            int(round(self.length[1] / self.resolution)),
+        )
+
+
+def to_grid_map(
+    grid: GridMap,
+    layers: tuple[str, ...] | list[str] | None = None,
+    basic_layers: tuple[str, ...] = (),
+) -> GridMapData:
+    """Convert a map to grid_map's conventions.
+
+    Parameters
+    ----------
+    grid : GridMap
+        The map.
+    layers : sequence of str, optional
+        Layers to take (default: every layer that is not ``kind="internal"``).
+    basic_layers : tuple of str
+        grid_map's basic layers.
+
+    Returns
+    -------
+    GridMapData
+        ``layers[name] = grid[name][::-1, ::-1].T`` (copies).
+    """
+    if layers is None:
+        layers = [n for n in grid.layers if grid.info(n).kind != "internal"]
+    g = grid.geometry
+    return GridMapData(
+        frame_id=g.frame_id,
+        resolution=g.resolution,
+        position=g.center,
+        length=g.length,
+        layers={n: np.ascontiguousarray(grid[n][::-1, ::-1].T) for n in layers},
+        basic_layers=tuple(basic_layers),
+    )
+
+
+def from_grid_map(
+    data: GridMapData,
+    *,
+    crs: Any = None,
+    info: Mapping[str, LayerInfo] | None = None,
+) -> GridMap:
+    """Build a :class:`GridMap` from grid_map's conventions (inverse of
+    :func:`to_grid_map`).
+
+    Parameters
+    ----------
+    data : GridMapData
+        The map; every layer of shape ``size``.
+    crs : optional
+        CRS of the frame (anything :meth:`MapCrs.from_any` reads).
+    info : mapping of str to LayerInfo, optional
+        Units and descriptions of the layers (default: unknown units ``""``).
+    """
+    nx, ny = data.size
+    lx, ly = data.length
+    if not (math.isclose(nx * data.resolution, lx) and math.isclose(ny * data.resolution, ly)):
+        raise InputError(
+            f"length {data.length} m is not a whole number of {data.resolution} m cells"
+        )
+    origin = (data.position[0] - lx / 2, data.position[1] - ly / 2)
+    geometry = GridGeometry(data.resolution, origin, (ny, nx), MapCrs.from_any(crs), data.frame_id)
+    grid = GridMap(geometry)
+    info = info or {}
+    for name, matrix in data.layers.items():
+        m = np.asarray(matrix, dtype=np.float64)
+        if m.shape != (nx, ny):
+            raise InputError(f"layer {name!r} has shape {m.shape}; grid_map size is {(nx, ny)}")
+        li = info.get(name, LayerInfo(""))
+        grid.add_layer(
+            name,
+            units=li.units,
+            description=li.description,
+            fill=li.fill,
+            kind=li.kind,
+            categories=li.categories,
+            data=m.T[::-1, ::-1],
+        )
+    return grid

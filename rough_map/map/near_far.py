@@ -1,0 +1,1164 @@
+"""Near-to-far: learn the look of the terrain near the rover, classify it far away.
+
+Geometry (stereo or range clouds, :mod:`rough_map.psd`, :mod:`rough_map.classify`) is only
+trustworthy in the patch of interest, about 1 m ahead. Appearance reaches further: every
+frame, the image tiles that see the patch are labelled with the geometric class of the patch
+and teach an online appearance model; the model then classifies the tiles that see the ground
+beyond, and their class probabilities are handed to the map as ground-cell predictions
+(the conclusion of the paper names this "near-to-far" extension as future work).
+
+Steps, per frame
+----------------
+1. *Tiles*: the left image is cut into square tiles of ``tile_px`` px. The ray through each
+   tile centre is intersected with the vehicle's ground plane ``z = 0`` (flat-ground
+   assumption, :func:`pixel_to_ground`); tiles that see no ground within reach are dropped.
+2. *Features* (:func:`tile_features`): per tile the mean CIE L*a*b* colour and the log of the
+   standard deviation of each L*a*b* channel (six numbers). L*a*b* separates brightness
+   from chroma, so a grey surface and a brown one differ in a*, b* whatever the exposure of
+   their texture, and a tile's mean and spread hardly depend on how far away it is. Texture
+   descriptors at a fixed pixel scale (LBP, Gabor, gradient energy) were tried and left out:
+   the same ground seen 3 m away shows its texture at half the pixel scale and with its fine
+   detail blurred, so they drift with distance and, learnt at 1 m only, mislead the far
+   field (on the simulated mixed course they cut the far-field accuracy at 2.5-3 m from
+   0.99 to 0.4-0.6; see ``benchmarks/bench_near_far.py``).
+3. *Update* (:meth:`NearToFar.update`): the tiles whose ground point lies in the patch are
+   one batch of a :class:`sklearn.naive_bayes.GaussianNB` ``partial_fit`` (running per-class
+   means and variances, the classes given up front). Tiles that are outliers within the batch
+   (more than ``outlier_k`` robust standard deviations from the batch median in some feature:
+   a manhole rim, a class boundary) are left out. A probability vector as the near label
+   weights the batch per class.
+4. *Prediction* (:meth:`NearToFar.predict`): class posteriors per tile with equal priors
+   over the classes seen so far, then an *unfamiliarity* gate: if a tile lies far from every
+   learnt class (its smallest squared Mahalanobis distance has a chi-square tail probability
+   below ``novelty_alpha``), its probabilities are pulled towards uniform. Terrain the rover
+   has not driven over yet thus comes out as "unknown", not as the nearest known class.
+5. *Ground cells*: predictions are returned on the world lattice of cell centres
+   ``((i + 0.5) * ground_step, (j + 0.5) * ground_step)`` (the lattice of
+   :class:`rough_map.map.grid.GridMap` maps of that resolution), for cells in view within
+   ``max_range`` of the vehicle and outside the patch: a cell averages the tiles whose
+   centres fall in it, or takes the tile its centre projects into when none does (far away
+   one tile covers several cells).
+
+Frames and units
+----------------
+Vehicle frame x forward, y left, z up; camera frame OpenCV (x right, y down, z forward); world
+frame as the poses, ``p_world = Rz(yaw) Ry(pitch) Rx(roll) p_vehicle + t``; all in m and rad.
+Pixel ``(u, v)`` = (column, row), integer coordinates at pixel centres.
+
+Limits
+------
+Flat ground: a tile's ground point is where its ray meets the vehicle's ``z = 0`` plane, so
+slopes and steps displace far predictions (by ``dz / tan(elevation angle)``, about 3 cm per
+cm of height at 3 m). Classes that look alike in colour (different roughness on the same
+material) cannot be told apart by this model; the near field, not the far field, is then the
+only source of their class.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from rough_map.errors import FileFormatError, InputError, NotFittedError
+
+if TYPE_CHECKING:
+    from typing import TypeAlias
+
+    from rough_map import config
+    from rough_map.config import Pose
+    from rough_map.io import stereo
+
+    #: Either calibration model: :class:`rough_map.io.stereo.StereoCalibration` or the
+    #: traverse file's :class:`rough_map.config.StereoCalibration` (same fields).
+    StereoCalibration: TypeAlias = stereo.StereoCalibration | config.StereoCalibration
+    from rough_map.io.traverse import Traverse
+    from rough_map.types import HeightField
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "FEATURE_NAMES",
+    "AccuracyTable",
+    "Coverage",
+    "FarPrediction",
+    "NearToFar",
+    "area_coverage",
+    "far_field_accuracy",
+    "ground_to_pixel",
+    "pixel_to_ground",
+    "pose_matrix",
+    "run_traverse",
+    "tile_features",
+]
+
+#: Names of the per-tile features of :func:`tile_features`, in column order.
+FEATURE_NAMES: tuple[str, ...] = (
+    "L_mean",
+    "a_mean",
+    "b_mean",
+    "log_L_std",
+    "log_a_std",
+    "log_b_std",
+)
+#: Added to the standard deviations before the log (L* and a*, b* units): keeps the log of a
+#: flat tile finite without mattering for textured ground (L* std 2-10 on rendered terrain).
+_STD_FLOOR = 0.05
+#: Lowest standard deviation a class keeps per feature in the unfamiliarity test (feature
+#: units): the near field of a few frames underestimates the spread of a class seen
+#: elsewhere (shading drifts with the viewing angle, colour noise grows with distance).
+_MIN_STD = np.array([1.5, 0.3, 0.6, 0.1, 0.1, 0.1])
+#: Accuracy-table bin edges (m of distance from the vehicle).
+DEFAULT_BINS = (1.5, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0)
+
+
+# --------------------------------------------------------------------------------------------
+# Geometry
+# --------------------------------------------------------------------------------------------
+
+
+def pose_matrix(pose: Pose | ArrayLike) -> NDArray[np.float64]:
+    """4x4 vehicle -> world transform of a pose.
+
+    Parameters
+    ----------
+    pose : Pose, array_like of 6 float or array_like (4, 4)
+        A :class:`rough_map.config.Pose`, ``(x, y, z, roll, pitch, yaw)`` in m and rad with
+        ``R = Rz(yaw) Ry(pitch) Rx(roll)``, or the 4x4 homogeneous matrix itself.
+
+    Returns
+    -------
+    ndarray, shape (4, 4)
+        Rotation and translation (m) taking vehicle coordinates to world coordinates.
+
+    Raises
+    ------
+    InputError
+        Not a pose of one of these forms, or not finite.
+    """
+    from rough_map.patch import rotation_matrix
+
+    matrix = getattr(pose, "matrix", None)
+    if callable(matrix):
+        return np.asarray(matrix(), dtype=float)
+    try:
+        arr = np.asarray(pose, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(
+            "pose must be a Pose, (x, y, z, roll, pitch, yaw) in m and rad, or a 4x4 matrix"
+        ) from None
+    if not np.all(np.isfinite(arr)):
+        raise InputError("pose has non-finite values")
+    if arr.shape == (4, 4):
+        return arr
+    if arr.shape != (6,):
+        raise InputError(
+            "pose must be a Pose, (x, y, z, roll, pitch, yaw) in m and rad or a 4x4 matrix, "
+            f"got shape {arr.shape}"
+        )
+    out = np.eye(4)
+    out[:3, :3] = rotation_matrix(roll=arr[3], pitch=arr[4], yaw=arr[5])
+    out[:3, 3] = arr[:3]
+    return out
+
+
+def pixel_to_ground(
+    calib: StereoCalibration, u: ArrayLike, v: ArrayLike, ground_z: float = 0.0
+) -> NDArray[np.float64]:
+    """Where the left-camera rays through pixels meet the plane ``z = ground_z``.
+
+    Parameters
+    ----------
+    calib : StereoCalibration
+        The rig (pinhole ``K`` and the left camera's pose in the vehicle frame).
+    u, v : array_like
+        Pixel column and row, px (broadcast together; integers are pixel centres).
+    ground_z : float
+        Height of the ground plane in the vehicle frame, m.
+
+    Returns
+    -------
+    ndarray, shape (..., 3)
+        Vehicle-frame points ``(x, y, z)`` in m; NaN for rays that do not go down to the
+        plane (at or above the horizon, or a camera below the plane).
+    """
+    u, v = np.broadcast_arrays(np.asarray(u, dtype=float), np.asarray(v, dtype=float))
+    transform = _camera_to_vehicle(calib)
+    rays = np.stack([(u - calib.cx) / calib.fx, (v - calib.cy) / calib.fy, np.ones_like(u)], -1)
+    dirs = rays @ transform[:3, :3].T
+    origin = transform[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (ground_z - origin[2]) / dirs[..., 2]
+    s = np.where(s > 0, s, np.nan)
+    return origin + s[..., None] * dirs
+
+
+def ground_to_pixel(
+    calib: StereoCalibration, points: ArrayLike
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Project vehicle-frame points into the left image.
+
+    Parameters
+    ----------
+    calib : StereoCalibration
+        The rig.
+    points : array_like, shape (..., 3)
+        Vehicle-frame ``(x, y, z)``, m.
+
+    Returns
+    -------
+    u, v : ndarray, shape (...)
+        Pixel column and row, px; NaN for points behind or within 1 cm of the camera plane.
+        Points may project outside the image.
+    """
+    p = np.asarray(points, dtype=float)
+    if p.shape[-1:] != (3,):
+        raise InputError(f"points must have shape (..., 3) (x, y, z in m), got {p.shape}")
+    transform = _camera_to_vehicle(calib)
+    cam = (p - transform[:3, 3]) @ transform[:3, :3]  # R^T (p - t), row-wise
+    z = np.where(cam[..., 2] > 0.01, cam[..., 2], np.nan)
+    return calib.fx * cam[..., 0] / z + calib.cx, calib.fy * cam[..., 1] / z + calib.cy
+
+
+def _camera_to_vehicle(calib: StereoCalibration) -> NDArray[np.float64]:
+    return np.asarray(calib.camera_to_vehicle, dtype=float)
+
+
+@dataclass(frozen=True)
+class _TileGeometry:
+    """Tile layout of one calibration: centres (px) and their ground points (vehicle, m)."""
+
+    n_rows: int
+    n_cols: int
+    ground: NDArray[np.float64]  # (n_rows * n_cols, 3), NaN where the ray misses the ground
+    distance: NDArray[np.float64]  # horizontal distance of the ground point from the vehicle
+
+
+def _tile_geometry(calib: StereoCalibration, tile_px: int) -> _TileGeometry:
+    n_rows, n_cols = calib.height // tile_px, calib.width // tile_px
+    centre = 0.5 * (tile_px - 1)
+    u = tile_px * np.arange(n_cols) + centre
+    v = tile_px * np.arange(n_rows) + centre
+    ground = pixel_to_ground(calib, u[None, :], v[:, None]).reshape(-1, 3)
+    return _TileGeometry(n_rows, n_cols, ground, np.hypot(ground[:, 0], ground[:, 1]))
+
+
+# --------------------------------------------------------------------------------------------
+# Features
+# --------------------------------------------------------------------------------------------
+
+
+def _check_image(image: ArrayLike, calib: StereoCalibration) -> NDArray[np.uint8]:
+    image = np.asarray(image)
+    if image.dtype != np.uint8:
+        raise InputError(f"image must be 8-bit (uint8) BGR, got dtype {image.dtype}")
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise InputError(
+            f"image must be a colour (height, width, 3) BGR array, got shape {image.shape}"
+        )
+    if image.shape[:2] != (calib.height, calib.width):
+        raise InputError(
+            f"image is {image.shape[1]}x{image.shape[0]} px but the calibration is for "
+            f"{calib.width}x{calib.height} px"
+        )
+    return image
+
+
+def tile_features(image_bgr: ArrayLike, tile_px: int = 32) -> NDArray[np.float64]:
+    """Colour features of the square tiles of an image.
+
+    Parameters
+    ----------
+    image_bgr : array_like of uint8, shape (H, W, 3)
+        8-bit BGR image (OpenCV order).
+    tile_px : int
+        Side of a tile, px. Tiles are laid from the top-left corner; the last
+        ``W % tile_px`` columns and ``H % tile_px`` rows are not used.
+
+    Returns
+    -------
+    ndarray, shape (H // tile_px * W // tile_px, 6)
+        One row per tile, row-major over the tile grid; columns :data:`FEATURE_NAMES`: mean
+        L* (0-100), a*, b* (about -128..127) of CIE L*a*b* (D65, OpenCV's float conversion of
+        sRGB) and ``log(std + 0.05)`` of each of the three channels (log of L*a*b* units).
+
+    Raises
+    ------
+    InputError
+        Not an 8-bit BGR image, or smaller than one tile.
+    """
+    import cv2
+
+    image = np.asarray(image_bgr)
+    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+        raise InputError(
+            f"image must be 8-bit BGR, shape (height, width, 3); got {image.dtype} {image.shape}"
+        )
+    if tile_px < 2:
+        raise InputError(f"tile_px must be at least 2 px, got {tile_px}")
+    n_rows, n_cols = image.shape[0] // tile_px, image.shape[1] // tile_px
+    if n_rows == 0 or n_cols == 0:
+        raise InputError(f"image {image.shape[1]}x{image.shape[0]} px is smaller than one tile")
+    crop = image[: n_rows * tile_px, : n_cols * tile_px]
+    lab = cv2.cvtColor(crop.astype(np.float32) * np.float32(1.0 / 255.0), cv2.COLOR_BGR2Lab)
+    # Per-tile sums by reshaping: (rows, tile, cols, tile, 3) -> sum over the two tile axes.
+    blocks = lab.reshape(n_rows, tile_px, n_cols, tile_px, 3).astype(np.float64)
+    n = float(tile_px * tile_px)
+    mean = blocks.sum(axis=(1, 3)) / n
+    var = np.maximum((blocks * blocks).sum(axis=(1, 3)) / n - mean * mean, 0.0)
+    out = np.concatenate([mean, np.log(np.sqrt(var) + _STD_FLOOR)], axis=-1)
+    return out.reshape(n_rows * n_cols, 6)
+
+
+# --------------------------------------------------------------------------------------------
+# Predictions
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FarPrediction:
+    """Class probabilities of ground cells seen in one image, beyond the near field.
+
+    Attributes
+    ----------
+    x, y : ndarray, shape (N,)
+        World coordinates of the cell centres, m.
+    ahead, lateral : ndarray, shape (N,)
+        The same points in the vehicle frame (x forward, y left), m.
+    distance : ndarray, shape (N,)
+        Horizontal distance from the vehicle origin, m.
+    proba : ndarray, shape (N, K)
+        Class probabilities (rows sum to 1), columns in the order of ``classes``.
+    classes : tuple of str
+        Class names.
+    t : float or None
+        Time of the frame, s.
+    frame : int or None
+        Index of the frame in its traverse.
+    """
+
+    x: NDArray[np.float64]
+    y: NDArray[np.float64]
+    ahead: NDArray[np.float64]
+    lateral: NDArray[np.float64]
+    distance: NDArray[np.float64]
+    proba: NDArray[np.float64]
+    classes: tuple[str, ...]
+    t: float | None = None
+    frame: int | None = None
+
+    def __len__(self) -> int:
+        return int(self.x.size)
+
+    @property
+    def label_index(self) -> NDArray[np.intp]:
+        """Most probable class index per cell, shape (N,)."""
+        return np.argmax(self.proba, axis=1) if len(self) else np.zeros(0, dtype=np.intp)
+
+    @property
+    def label(self) -> NDArray[np.str_]:
+        """Most probable class name per cell, shape (N,)."""
+        return np.asarray(self.classes)[self.label_index]
+
+    @property
+    def confidence(self) -> NDArray[np.float64]:
+        """Probability of the most probable class per cell, shape (N,)."""
+        return self.proba.max(axis=1) if len(self) else np.zeros(0)
+
+    def select(self, mask: ArrayLike) -> FarPrediction:
+        """The cells where the boolean ``mask`` (shape (N,)) is true."""
+        m = np.asarray(mask, dtype=bool)
+        if m.shape != self.x.shape:
+            raise InputError(f"mask must have shape {self.x.shape}, got {m.shape}")
+        return FarPrediction(
+            self.x[m],
+            self.y[m],
+            self.ahead[m],
+            self.lateral[m],
+            self.distance[m],
+            self.proba[m],
+            self.classes,
+            self.t,
+            self.frame,
+        )
+
+
+# --------------------------------------------------------------------------------------------
+# The model
+# --------------------------------------------------------------------------------------------
+
+
+class NearToFar:
+    """Online appearance model: learn near-field tiles, classify far-field ground cells.
+
+    Parameters
+    ----------
+    classes : sequence of str
+        Terrain class names, in the order of the probability vectors in and out.
+    tile_px : int
+        Side of the square image tiles, px.
+    max_range : float
+        Largest horizontal distance from the vehicle of a predicted cell, m.
+    near : (float, float)
+        The near field, i.e. the patch that geometry classifies: ``near[0] <= x <= near[1]``
+        ahead of the vehicle, m.
+    near_half_width : float, optional
+        Half width of the near field across the vehicle (``|y| <=``), m; by default half of
+        ``near[1] - near[0]`` (a square patch).
+    ground_step : float
+        Spacing of the ground cells the predictions are given on, m.
+    novelty_alpha : float
+        Tiles whose squared Mahalanobis distance to every learnt class has a chi-square tail
+        probability below this are unfamiliar: their probabilities are mixed with the uniform
+        distribution, all the way when the tail probability is 0. 0 disables the test.
+    outlier_k : float
+        Near-field tiles further than this many robust standard deviations (1.4826 MAD) from
+        the batch median in some feature are not learnt; ``inf`` learns them all.
+    min_near_tiles : int
+        Fewest near-field tiles an update needs; fewer (the patch out of view) raises.
+
+    Attributes
+    ----------
+    model_ : sklearn.naive_bayes.GaussianNB
+        The running class-conditional Gaussians (after the first :meth:`update`).
+    n_updates_ : int
+        Number of updates made.
+    seen_ : ndarray of bool, shape (K,)
+        Classes learnt so far.
+    """
+
+    def __init__(
+        self,
+        classes: Sequence[str],
+        tile_px: int = 32,
+        max_range: float = 8.0,
+        near: tuple[float, float] = (0.55, 1.45),
+        *,
+        near_half_width: float | None = None,
+        ground_step: float = 0.1,
+        novelty_alpha: float = 1e-3,
+        outlier_k: float = 4.0,
+        min_near_tiles: int = 8,
+    ) -> None:
+        self.classes = tuple(str(c) for c in classes)
+        self.tile_px = int(tile_px)
+        self.max_range = float(max_range)
+        self.near = (float(near[0]), float(near[1]))
+        self.near_half_width = (
+            0.5 * (self.near[1] - self.near[0]) if near_half_width is None else near_half_width
+        )
+        self.ground_step = float(ground_step)
+        self.novelty_alpha = float(novelty_alpha)
+        self.outlier_k = float(outlier_k)
+        self.min_near_tiles = int(min_near_tiles)
+        self._check_params()
+        self._geometry_key: tuple[str, int] | None = None
+        self._geometry: _TileGeometry | None = None
+
+    def _check_params(self) -> None:
+        if len(self.classes) < 2:
+            raise InputError(f"classes must name at least two classes, got {self.classes}")
+        if len(set(self.classes)) != len(self.classes):
+            raise InputError(f"classes must be distinct, got {self.classes}")
+        if self.tile_px < 4:
+            raise InputError(f"tile_px must be at least 4 px, got {self.tile_px}")
+        if not 0.0 <= self.near[0] < self.near[1]:
+            raise InputError(f"near must be (start, end) m with 0 <= start < end, got {self.near}")
+        if not self.near_half_width > 0:
+            raise InputError(f"near_half_width must be positive (m), got {self.near_half_width}")
+        if not self.max_range > self.near[1]:
+            raise InputError(
+                f"max_range ({self.max_range} m) must exceed the end of the near field "
+                f"({self.near[1]} m)"
+            )
+        if not self.ground_step > 0:
+            raise InputError(f"ground_step must be positive (m), got {self.ground_step}")
+        if not 0.0 <= self.novelty_alpha < 1.0:
+            raise InputError(f"novelty_alpha must be in [0, 1), got {self.novelty_alpha}")
+
+    # ------------------------------------------------------------------------------ helpers
+
+    def _tiles(self, calib: StereoCalibration) -> _TileGeometry:
+        key = (calib.model_dump_json(), self.tile_px)
+        if self._geometry is None or self._geometry_key != key:
+            self._geometry = _tile_geometry(calib, self.tile_px)
+            self._geometry_key = key
+        return self._geometry
+
+    def _in_near(self, ahead: NDArray[np.float64], lateral: NDArray[np.float64]) -> NDArray:
+        with np.errstate(invalid="ignore"):
+            return (
+                (ahead >= self.near[0])
+                & (ahead <= self.near[1])
+                & (np.abs(lateral) <= self.near_half_width)
+            )
+
+    def _target(self, near_label: str | int | ArrayLike) -> NDArray[np.float64]:
+        """Class weights (K,) of a near label: name, index or probability vector."""
+        k = len(self.classes)
+        if isinstance(near_label, str):
+            if near_label not in self.classes:
+                raise InputError(
+                    f"unknown class label {near_label!r}; expected one of {self.classes}"
+                )
+            return np.eye(k)[self.classes.index(near_label)]
+        arr = np.asarray(near_label)
+        if arr.ndim == 0:
+            if not np.issubdtype(arr.dtype, np.integer) or not 0 <= int(arr) < k:
+                raise InputError(
+                    f"unknown class label {near_label!r}; expected a class name or an index "
+                    f"0..{k - 1}"
+                )
+            return np.eye(k)[int(arr)]
+        p = arr.astype(float)
+        if p.shape != (k,) or not np.all(np.isfinite(p)) or np.any(p < 0) or p.sum() <= 0:
+            raise InputError(
+                f"near probabilities must be {k} non-negative finite numbers (one per class "
+                f"{self.classes}), got {arr!r}"
+            )
+        return p / p.sum()
+
+    # ------------------------------------------------------------------------------ learning
+
+    def update(
+        self,
+        image_bgr: ArrayLike,
+        calib: StereoCalibration,
+        pose: Pose | ArrayLike,
+        near_label: str | int | ArrayLike,
+    ) -> NearToFar:
+        """Learn the look of the near field of one frame.
+
+        Parameters
+        ----------
+        image_bgr : array_like of uint8, shape (H, W, 3)
+            Left image, 8-bit BGR, of the size of ``calib``.
+        calib : StereoCalibration
+            The rig.
+        pose : Pose or array_like
+            Vehicle pose in the world (see :func:`pose_matrix`). The near field is defined in
+            the vehicle frame, so the pose is only checked; it is taken for symmetry with
+            :meth:`predict`.
+        near_label : str, int or array_like of float, shape (K,)
+            Geometric class of the near-field patch: a class name, a class index, or class
+            probabilities (weights of the tiles per class).
+
+        Returns
+        -------
+        NearToFar
+            ``self``.
+
+        Raises
+        ------
+        InputError
+            Wrong image size or type, an unknown class label, or a near field not in view.
+        """
+        from sklearn.naive_bayes import GaussianNB
+
+        image = _check_image(image_bgr, calib)
+        pose_matrix(pose)
+        target = self._target(near_label)
+        geometry = self._tiles(calib)
+        near = self._in_near(geometry.ground[:, 0], geometry.ground[:, 1])
+        if near.sum() < self.min_near_tiles:
+            raise InputError(
+                f"only {int(near.sum())} tiles of {self.tile_px} px see the near field "
+                f"{self.near} m ahead; check the calibration or use smaller tiles"
+            )
+        features = tile_features(image, self.tile_px)[near]
+        keep = _inliers(features, self.outlier_k)
+        if hasattr(self, "model_"):
+            # Tiles that look like another class already learnt are that class, not the
+            # label's: the patch straddles a class boundary or the geometric label is wrong.
+            nearest, tail = self._nearest_class(features)
+            keep &= (nearest == np.argmax(target)) | (tail < self.novelty_alpha)
+        if not keep.any():
+            log.debug("near-to-far update skipped: no near tile fits the label")
+            return self
+        features = features[keep]
+        classes = np.flatnonzero(target > 1e-3)
+        x = np.repeat(features, classes.size, axis=0)
+        y = np.tile(classes, len(features))
+        weight = np.tile(target[classes], len(features))
+        if not hasattr(self, "model_"):
+            self.model_ = GaussianNB(var_smoothing=1e-9)
+            self.model_.partial_fit(
+                x, y, classes=np.arange(len(self.classes)), sample_weight=weight
+            )
+            self.n_updates_ = 0
+            self.seen_ = np.zeros(len(self.classes), dtype=bool)
+        else:
+            self.model_.partial_fit(x, y, sample_weight=weight)
+        self.n_updates_ += 1
+        self.seen_[classes] = True
+        log.debug(
+            "near-to-far update %d: %d/%d near tiles, classes %s",
+            self.n_updates_,
+            int(keep.sum()),
+            keep.size,
+            [self.classes[c] for c in classes],
+        )
+        return self
+
+    # ------------------------------------------------------------------------------ prediction
+
+    def _nearest_class(
+        self, x: NDArray[np.float64]
+    ) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
+        """Nearest learnt class of feature rows and the chi-square tail probability there.
+
+        The squared Mahalanobis distance uses each class's variances widened to at least
+        ``_MIN_STD ** 2``; the tail probability is that of a chi-square variable with one
+        degree of freedom per feature.
+        """
+        from scipy.stats import chi2
+
+        seen = np.flatnonzero(self.seen_)
+        mean = self.model_.theta_[seen]
+        wide = np.maximum(self.model_.var_[seen], _MIN_STD[None, :] ** 2)
+        d2 = (((x[:, None, :] - mean[None]) ** 2) / wide[None]).sum(axis=-1)
+        best = np.argmin(d2, axis=1)
+        return seen[best], chi2.sf(d2[np.arange(len(x)), best], df=x.shape[1])
+
+    def predict_proba_features(self, features: ArrayLike) -> NDArray[np.float64]:
+        """Class probabilities of feature rows (:func:`tile_features`).
+
+        Equal priors over the classes learnt so far, zero for the others; unfamiliar rows are
+        pulled towards uniform over all classes (see ``novelty_alpha``).
+
+        Parameters
+        ----------
+        features : array_like, shape (N, 6)
+            Tile features.
+
+        Returns
+        -------
+        ndarray, shape (N, K)
+            Probabilities, rows summing to 1.
+
+        Raises
+        ------
+        NotFittedError
+            Before the first :meth:`update`.
+        """
+        from scipy.special import logsumexp
+
+        if not hasattr(self, "model_"):
+            raise NotFittedError("NearToFar has learnt nothing yet: call update() first")
+        x = np.asarray(features, dtype=float)
+        if x.ndim != 2 or x.shape[1] != len(FEATURE_NAMES):
+            raise InputError(f"features must have shape (N, {len(FEATURE_NAMES)}), got {x.shape}")
+        seen = np.flatnonzero(self.seen_)
+        mean = self.model_.theta_[seen]
+        var = self.model_.var_[seen]
+        d2 = (((x[:, None, :] - mean[None]) ** 2) / var[None]).sum(axis=-1)  # (N, S)
+        loglik = -0.5 * d2 - 0.5 * np.log(2.0 * np.pi * var).sum(axis=-1)[None]
+        post = np.zeros((len(x), len(self.classes)))
+        post[:, seen] = np.exp(loglik - logsumexp(loglik, axis=1, keepdims=True))
+        if self.novelty_alpha > 0:
+            _, tail = self._nearest_class(x)
+            known = np.clip(tail / self.novelty_alpha, 0.0, 1.0)[:, None]
+            post = known * post + (1.0 - known) / len(self.classes)
+        return post
+
+    def predict(
+        self,
+        image_bgr: ArrayLike,
+        calib: StereoCalibration,
+        pose: Pose | ArrayLike,
+        *,
+        t: float | None = None,
+        frame: int | None = None,
+    ) -> FarPrediction:
+        """Class probabilities of the ground cells in view beyond the near field.
+
+        Parameters
+        ----------
+        image_bgr : array_like of uint8, shape (H, W, 3)
+            Left image, 8-bit BGR, of the size of ``calib``.
+        calib : StereoCalibration
+            The rig.
+        pose : Pose or array_like
+            Vehicle pose in the world (see :func:`pose_matrix`).
+        t : float, optional
+            Frame time, s, copied to the prediction.
+        frame : int, optional
+            Frame index, copied to the prediction.
+
+        Returns
+        -------
+        FarPrediction
+            Cells on the ``ground_step`` world lattice within ``max_range`` m, outside the
+            near field, seen by a tile whose ray meets the ground.
+
+        Raises
+        ------
+        InputError
+            Wrong image size or type, or a bad pose.
+        NotFittedError
+            Before the first :meth:`update`.
+        """
+        image = _check_image(image_bgr, calib)
+        transform = pose_matrix(pose)
+        if not hasattr(self, "model_"):
+            raise NotFittedError("NearToFar has learnt nothing yet: call update() first")
+        geometry = self._tiles(calib)
+        n_tiles = geometry.n_rows * geometry.n_cols
+        # Tiles whose centre is a little beyond max_range still cover cells within it.
+        reach = self.max_range + 1.0
+        with np.errstate(invalid="ignore"):
+            usable = np.isfinite(geometry.distance) & (geometry.distance <= reach)
+        tile_proba = np.full((n_tiles, len(self.classes)), np.nan)
+        if usable.any():
+            features = tile_features(image, self.tile_px)[usable]
+            tile_proba[usable] = self.predict_proba_features(features)
+        cells = self._cells(calib, geometry, transform, usable, tile_proba)
+        ahead, lateral, wx, wy, proba = cells
+        return FarPrediction(
+            x=wx,
+            y=wy,
+            ahead=ahead,
+            lateral=lateral,
+            distance=np.hypot(ahead, lateral),
+            proba=proba,
+            classes=self.classes,
+            t=t,
+            frame=frame,
+        )
+
+    def _cells(
+        self,
+        calib: StereoCalibration,
+        geometry: _TileGeometry,
+        transform: NDArray[np.float64],
+        usable: NDArray[np.bool_],
+        tile_proba: NDArray[np.float64],
+    ) -> tuple[NDArray[np.float64], ...]:
+        """Ground cells in view and their probabilities (see the module notes, step 5)."""
+        step = self.ground_step
+        rot, trans = transform[:3, :3], transform[:3, 3]
+        # World bounding box of the vehicle-frame area in reach, on the cell lattice.
+        reach = self.max_range
+        corners = np.array([[x, y, 0.0] for x in (0.0, reach) for y in (-reach, reach)])
+        world = corners @ rot.T + trans
+        i0 = math.floor(world[:, 0].min() / step)
+        i1 = math.ceil(world[:, 0].max() / step)
+        j0 = math.floor(world[:, 1].min() / step)
+        j1 = math.ceil(world[:, 1].max() / step)
+        gx, gy = np.meshgrid((np.arange(i0, i1) + 0.5) * step, (np.arange(j0, j1) + 0.5) * step)
+        wx, wy = gx.ravel(), gy.ravel()
+        # The point of the vehicle's z = 0 plane above/below each world (x, y).
+        try:
+            inv = np.linalg.inv(rot[:2, :2])
+        except np.linalg.LinAlgError:
+            raise InputError("the pose tilts the vehicle's ground plane vertical") from None
+        vxy = np.column_stack([wx - trans[0], wy - trans[1]]) @ inv.T
+        ahead, lateral = vxy[:, 0], vxy[:, 1]
+        keep = (
+            (ahead > 0)
+            & (np.hypot(ahead, lateral) <= self.max_range)
+            & ~self._in_near(ahead, lateral)
+        )
+        ahead, lateral, wx, wy = ahead[keep], lateral[keep], wx[keep], wy[keep]
+        u, v = ground_to_pixel(calib, np.column_stack([ahead, lateral, np.zeros_like(ahead)]))
+        t_px = self.tile_px
+        with np.errstate(invalid="ignore"):
+            inside = (
+                (u >= -0.5)
+                & (u < geometry.n_cols * t_px - 0.5)
+                & (v >= -0.5)
+                & (v < geometry.n_rows * t_px - 0.5)
+            )
+        tile = np.full(u.shape, -1, dtype=np.int64)
+        tile[inside] = np.floor((v[inside] + 0.5) / t_px).astype(
+            np.int64
+        ) * geometry.n_cols + np.floor((u[inside] + 0.5) / t_px).astype(np.int64)
+        inside &= tile >= 0
+        inside[inside] = usable[tile[inside]]
+        ahead, lateral, wx, wy, tile = (a[inside] for a in (ahead, lateral, wx, wy, tile))
+        proba = tile_proba[tile]
+        # Cells holding tile centres take the mean of those tiles instead (near the rover a
+        # cell spans many tiles).
+        centres = geometry.ground[usable] @ rot.T + trans
+        keys = np.floor(np.concatenate([np.column_stack([wx, wy]), centres[:, :2]]) / step).astype(
+            np.int64
+        )
+        if len(keys):
+            _, inverse = np.unique(keys, axis=0, return_inverse=True)
+            inverse = inverse.ravel()
+            n_cells = len(wx)
+            sums = np.zeros((int(inverse.max()) + 1, proba.shape[1]))
+            counts = np.zeros(len(sums))
+            np.add.at(sums, inverse[n_cells:], tile_proba[usable])
+            np.add.at(counts, inverse[n_cells:], 1.0)
+            hits = counts[inverse[:n_cells]]
+            filled = hits > 0
+            proba[filled] = sums[inverse[:n_cells]][filled] / hits[filled, None]
+        return ahead, lateral, wx, wy, proba
+
+
+def _inliers(features: NDArray[np.float64], k: float) -> NDArray[np.bool_]:
+    """Rows within ``k`` robust standard deviations of the column medians in every column."""
+    if not np.isfinite(k) or len(features) < 10:
+        return np.ones(len(features), dtype=bool)
+    median = np.median(features, axis=0)
+    mad = 1.4826 * np.median(np.abs(features - median), axis=0)
+    mad = np.maximum(mad, 1e-6)
+    return np.all(np.abs(features - median) <= k * mad, axis=1)
+
+
+# --------------------------------------------------------------------------------------------
+# Traverses and evaluation
+# --------------------------------------------------------------------------------------------
+
+
+def _read_bgr(path: Any) -> NDArray[np.uint8]:
+    import cv2
+
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise FileFormatError(path, "missing or not an image OpenCV can decode")
+    return image
+
+
+def run_traverse(
+    traverse: Traverse,
+    near_labels: Sequence[str | int | None] | ArrayLike,
+    *,
+    every: int = 1,
+    model: NearToFar | None = None,
+    classes: Sequence[str] | None = None,
+    **kwargs: Any,
+) -> list[FarPrediction]:
+    """Run near-to-far along a traverse, learning frame by frame.
+
+    Each frame with a left image (every ``every``-th of them) is first *predicted* with the
+    model learnt from the earlier frames only, then *learnt* with its near label. Frames before
+    the first update give no prediction.
+
+    Parameters
+    ----------
+    traverse : Traverse
+        With a calibration and left images (colour).
+    near_labels : sequence or ndarray
+        One geometric near-field label per frame of the traverse (all frames, imaged or not):
+        class names or indices (None where unknown: the frame is not learnt), or an array
+        (n_frames, K) of class probabilities (rows of NaN where unknown).
+    every : int
+        Use every ``every``-th imaged frame.
+    model : NearToFar, optional
+        A model to continue; by default a new one with ``classes`` and ``kwargs``.
+    classes : sequence of str, optional
+        Class names of a new model; by default the class names of the traverse's simulator
+        (:data:`rough_map.simulate.world.CLASS_NAMES`).
+    **kwargs
+        Passed to :class:`NearToFar`.
+
+    Returns
+    -------
+    list of FarPrediction
+        One per predicted frame, in time order, with ``frame`` and ``t`` set.
+
+    Raises
+    ------
+    InputError
+        No calibration, labels of the wrong length, an unknown label, ``every < 1``.
+    """
+    if every < 1:
+        raise InputError(f"every must be >= 1, got {every}")
+    calib = traverse.spec.calibration
+    if calib is None:
+        raise InputError(f"{traverse.source} has no stereo calibration")
+    if isinstance(near_labels, np.ndarray) and near_labels.ndim == 2:
+        labels: list[Any] = [None if np.any(np.isnan(r)) else r for r in near_labels]
+    else:
+        labels = list(near_labels)  # type: ignore[arg-type]
+    if len(labels) != len(traverse):
+        raise InputError(
+            f"near_labels has {len(labels)} entries but the traverse has {len(traverse)} frames"
+        )
+    if model is None:
+        if classes is None:
+            from rough_map.simulate.world import CLASS_NAMES
+
+            classes = CLASS_NAMES
+        model = NearToFar(classes, **kwargs)
+    imaged = [i for i, f in enumerate(traverse.frames) if f.left is not None][::every]
+    out: list[FarPrediction] = []
+    start = time.perf_counter()
+    for i in imaged:
+        frame = traverse.frames[i]
+        image = _read_bgr(traverse.resolve(frame.left))  # type: ignore[arg-type]
+        if hasattr(model, "model_"):
+            out.append(model.predict(image, calib, frame.pose, t=frame.t, frame=i))
+        if labels[i] is not None:
+            model.update(image, calib, frame.pose, labels[i])
+    log.info(
+        "near-to-far: %d frames, %d predictions in %.1f s",
+        len(imaged),
+        len(out),
+        time.perf_counter() - start,
+    )
+    return out
+
+
+def _world_class(world: HeightField, x: NDArray, y: NDArray) -> NDArray[np.int64]:
+    """Class index of the world's nearest cell at (x, y) m; -1 outside or unclassified."""
+    if world.classes is None:
+        raise InputError("the world has no class map")
+    ny, nx = world.classes.shape
+    col = np.rint((np.asarray(x) - world.origin[0]) / world.spacing).astype(np.int64)
+    row = np.rint((np.asarray(y) - world.origin[1]) / world.spacing).astype(np.int64)
+    ok = (col >= 0) & (col < nx) & (row >= 0) & (row < ny)
+    out = np.full(col.shape, -1, dtype=np.int64)
+    out[ok] = world.classes[row[ok], col[ok]]
+    if ok.any():
+        out[ok] = np.where(np.isfinite(world.heights[row[ok], col[ok]]), out[ok], -1)
+    return out
+
+
+def _class_map(classes: Sequence[str], world: HeightField) -> NDArray[np.int64]:
+    """Index of each world class name in ``classes`` (-1 if absent), for remapping."""
+    lookup = {name: i for i, name in enumerate(classes)}
+    return np.array([lookup.get(name, -1) for name in world.class_names], dtype=np.int64)
+
+
+@dataclass(frozen=True)
+class AccuracyTable:
+    """Far-field accuracy against distance (:func:`far_field_accuracy`).
+
+    Attributes
+    ----------
+    edges : ndarray, shape (B + 1,)
+        Bin edges of distance from the vehicle, m (the first is 0).
+    n : ndarray of int, shape (B,)
+        Predictions on classified world cells per bin.
+    n_confident : ndarray of int, shape (B,)
+        Of those, predictions with confidence >= ``threshold``.
+    accuracy : ndarray, shape (B,)
+        Share of confident predictions whose class is the world's; NaN for empty bins.
+    accuracy_all : ndarray, shape (B,)
+        Share of all predictions whose class is the world's; NaN for empty bins.
+    threshold : float
+        Confidence threshold.
+    """
+
+    edges: NDArray[np.float64]
+    n: NDArray[np.int64]
+    n_confident: NDArray[np.int64]
+    accuracy: NDArray[np.float64]
+    accuracy_all: NDArray[np.float64]
+    threshold: float
+
+    def overall(self, max_distance: float = np.inf) -> float:
+        """Accuracy of the confident predictions up to ``max_distance`` m (bin edges)."""
+        sel = self.edges[1:] <= max_distance + 1e-9
+        n = self.n_confident[sel]
+        acc = np.nan_to_num(self.accuracy[sel])
+        return float((acc * n).sum() / n.sum()) if n.sum() else float("nan")
+
+    def to_text(self) -> str:
+        """The table as aligned text (a Markdown table)."""
+        lines = [
+            f"| distance (m) | cells | confident (p >= {self.threshold:g}) | accuracy "
+            "(confident) | accuracy (all) |",
+            "|---|---:|---:|---:|---:|",
+        ]
+        for k in range(len(self.n)):
+            lines.append(
+                f"| {self.edges[k]:g}-{self.edges[k + 1]:g} | {self.n[k]} | "
+                f"{self.n_confident[k]} | {self.accuracy[k]:.3f} | {self.accuracy_all[k]:.3f} |"
+            )
+        return "\n".join(lines)
+
+
+def far_field_accuracy(
+    predictions: Sequence[FarPrediction],
+    world: HeightField,
+    bins: Sequence[float] = DEFAULT_BINS,
+    *,
+    threshold: float = 0.0,
+) -> AccuracyTable:
+    """Compare far-field predictions with the world's class map, by distance.
+
+    Parameters
+    ----------
+    predictions : sequence of FarPrediction
+        E.g. from :func:`run_traverse`.
+    world : HeightField
+        The true world, with ``classes`` and ``class_names``; predictions are compared with
+        the class of the world cell nearest to their (x, y). Cells outside the world (or of a
+        class the predictions do not know) are not counted.
+    bins : sequence of float
+        Upper edges of the distance bins, m, increasing; the first bin starts at 0.
+    threshold : float
+        Confidence (largest class probability) a prediction needs to count in ``accuracy``.
+
+    Returns
+    -------
+    AccuracyTable
+    """
+    edges = np.concatenate([[0.0], np.asarray(bins, dtype=float)])
+    if edges.ndim != 1 or len(edges) < 2 or np.any(np.diff(edges) <= 0):
+        raise InputError(f"bins must be positive increasing distances (m), got {bins!r}")
+    if not 0.0 <= threshold <= 1.0:
+        raise InputError(f"threshold must be in [0, 1], got {threshold}")
+    n_bins = len(edges) - 1
+    n = np.zeros(n_bins, dtype=np.int64)
+    n_conf = np.zeros(n_bins, dtype=np.int64)
+    hits = np.zeros(n_bins)
+    hits_all = np.zeros(n_bins)
+    for pred in predictions:
+        if not len(pred):
+            continue
+        remap = _class_map(pred.classes, world)
+        truth = _world_class(world, pred.x, pred.y)
+        truth = np.where(truth >= 0, remap[np.maximum(truth, 0)], -1)
+        b = np.searchsorted(edges, pred.distance, side="right") - 1
+        ok = (truth >= 0) & (b >= 0) & (b < n_bins)
+        correct = pred.label_index == truth
+        conf = pred.confidence >= threshold
+        np.add.at(n, b[ok], 1)
+        np.add.at(hits_all, b[ok], correct[ok])
+        sel = ok & conf
+        np.add.at(n_conf, b[sel], 1)
+        np.add.at(hits, b[sel], correct[sel])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        accuracy = np.where(n_conf > 0, hits / n_conf, np.nan)
+        accuracy_all = np.where(n > 0, hits_all / n, np.nan)
+    return AccuracyTable(edges, n, n_conf, accuracy, accuracy_all, float(threshold))
+
+
+@dataclass(frozen=True)
+class Coverage:
+    """Ground covered by the near field alone and with near-to-far (:func:`area_coverage`).
+
+    Attributes
+    ----------
+    cell : float
+        Side of the counting grid, m.
+    near_area : float
+        Area of the cells covered by near-field patches, m^2.
+    far_area : float
+        Area of the cells covered by confident far-field predictions and not by the near
+        field, m^2.
+    total_area : float
+        ``near_area + far_area``, m^2.
+    ratio : float
+        ``total_area / near_area``.
+    accuracy : float
+        Share of the far-only cells whose fused class (mean of the confident probabilities
+        predicted for the cell over all frames) is the world's.
+    threshold : float
+        Confidence threshold of the far predictions counted.
+    """
+
+    cell: float
+    near_area: float
+    far_area: float
+    total_area: float
+    ratio: float
+    accuracy: float
+    threshold: float
+
+
+def area_coverage(
+    predictions: Sequence[FarPrediction],
+    poses: ArrayLike,
+    world: HeightField,
+    *,
+    near: tuple[float, float] = (0.55, 1.45),
+    near_half_width: float | None = None,
+    cell: float = 0.1,
+    threshold: float = 0.0,
+) -> Coverage:
+    """Ground area covered by the near-field patches, and with the far-field cells added.
+
+    Parameters
+    ----------
+    predictions : sequence of FarPrediction
+        Far-field predictions, e.g. from :func:`run_traverse`.
+    poses : array_like, shape (F, 6)
+        Poses of every frame whose near-field patch geometry classified, ``(x, y, z, roll,
+        pitch, yaw)`` in m and rad (:meth:`Traverse.poses`).
+    world : HeightField
+        The true world: only cells inside it with a class count (the simulated world is a
+        strip; what lies beyond cannot be checked), and it gives the truth for ``accuracy``.
+    near : (float, float)
+        The patch, m ahead (as :class:`NearToFar`).
+    near_half_width : float, optional
+        Half width of the patch, m; half of ``near[1] - near[0]`` by default.
+    cell : float
+        Side of the counting grid, m.
+    threshold : float
+        Confidence a far prediction needs to count.
+
+    Returns
+    -------
+    Coverage
+    """
+    poses = np.asarray(poses, dtype=float)
+    if poses.ndim != 2 or poses.shape[1] != 6:
+        raise InputError(f"poses must have shape (F, 6), got {poses.shape}")
+    if not cell > 0:
+        raise InputError(f"cell must be positive (m), got {cell}")
+    half = 0.5 * (near[1] - near[0]) if near_half_width is None else near_half_width
+    # Near field: sample each patch at a quarter cell and mark the cells hit.
+    step = cell / 4.0
+    ax = np.arange(near[0] + step / 2, near[1], step)
+    ay = np.arange(-half + step / 2, half, step)
+    gx, gy = np.meshgrid(ax, ay)
+    patch = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)])
+    near_keys: set[tuple[int, int]] = set()
+    for pose in poses:
+        pw = patch @ pose_matrix(pose)[:3, :3].T + pose[:3]
+        ok = _world_class(world, pw[:, 0], pw[:, 1]) >= 0
+        near_keys.update(_keys(pw[ok, 0], pw[ok, 1], cell))
+    # Far field: confident predictions; fuse per cell by the mean probability.
+    sums: dict[tuple[int, int], NDArray[np.float64]] = {}
+    classes: tuple[str, ...] = ()
+    for pred in predictions:
+        if not len(pred):
+            continue
+        classes = pred.classes
+        ok = (pred.confidence >= threshold) & (_world_class(world, pred.x, pred.y) >= 0)
+        for key, p in zip(_keys(pred.x[ok], pred.y[ok], cell), pred.proba[ok], strict=True):
+            if key in sums:
+                sums[key] = sums[key] + p
+            else:
+                sums[key] = p.copy()
+    far_keys = [k for k in sums if k not in near_keys]
+    accuracy = float("nan")
+    if far_keys:
+        xs = (np.array([k[0] for k in far_keys]) + 0.5) * cell
+        ys = (np.array([k[1] for k in far_keys]) + 0.5) * cell
+        truth = _world_class(world, xs, ys)
+        remap = _class_map(classes, world)
+        truth = np.where(truth >= 0, remap[np.maximum(truth, 0)], -1)
+        fused = np.array([np.argmax(sums[k]) for k in far_keys])
+        ok = truth >= 0
+        accuracy = float(np.mean(fused[ok] == truth[ok])) if ok.any() else float("nan")
+    near_area = len(near_keys) * cell * cell
+    far_area = len(far_keys) * cell * cell
+    total = near_area + far_area
+    return Coverage(
+        cell=cell,
+        near_area=near_area,
+        far_area=far_area,
+        total_area=total,
+        ratio=total / near_area if near_area else float("inf"),
+        accuracy=accuracy,
+        threshold=float(threshold),
+    )
+
+
+def _keys(x: NDArray, y: NDArray, cell: float) -> list[tuple[int, int]]:
+    i = np.floor(np.asarray(x) / cell).astype(np.int64)
+    j = np.floor(np.asarray(y) / cell).astype(np.int64)
+    return list(zip(i.tolist(), j.tolist(), strict=True))
