@@ -316,3 +316,30 @@ def map_layers(
         ax.set_ylabel("y [m]")
     ax.set_xlabel("x [m]")
     return _save(plt, fig, path)
+
+
+def confusion_matrices(evaluation: dict, path: str | Path) -> Path:
+    """Row-normalised confusion matrices, raw and filtered side by side.
+
+    ``evaluation`` has ``raw`` and ``filtered`` parts with ``classes``,
+    ``confusion_matrix_normalized``, ``accuracy`` and ``macro_f1``.
+    """
+    plt, fig = _figure(11, 4.8)
+    axes = fig.subplots(1, 2)
+    im = None
+    for ax, key in zip(axes, ("raw", "filtered"), strict=True):
+        part = evaluation[key]
+        cm = np.asarray(part["confusion_matrix_normalized"], dtype=float)
+        names = part["classes"]
+        im = ax.imshow(cm, vmin=0.0, vmax=1.0, cmap="Blues")
+        ax.set_xticks(range(len(names)), names, rotation=40, ha="right")
+        ax.set_yticks(range(len(names)), names)
+        ax.set_xlabel("predicted class")
+        ax.set_ylabel("true class")
+        ax.set_title(f"{key}: macro-F1 {part['macro_f1']:.3f}, accuracy {part['accuracy']:.3f}")
+        for i in range(cm.shape[0]):
+            for j in range(cm.shape[1]):
+                ax.text(j, i, f"{cm[i, j]:.2f}", ha="center", va="center",
+                        color="white" if cm[i, j] > 0.5 else "black", fontsize=8)
+    fig.colorbar(im, ax=list(axes), shrink=0.8, label="fraction of the true class")
+    return _save(plt, fig, path)

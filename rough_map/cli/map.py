@@ -1,0 +1,70 @@
+"""``rough-map map TRAVERSE --model M --out DIR``: the semantic map, exported."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from rough_map.cli._common import emit_json, table
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "map",
+        help="fuse a traverse into a grid map; write GeoTIFF, PNGs and per-frame labels",
+        description=(
+            "Compute the features of every frame, classify them with the model, smooth the "
+            "classes along the path, fuse the patches into a grid map (R, w, sigma, level, "
+            "class probabilities, count, last seen, elevation) and, when the frames have "
+            "stereo images, extend it beyond the patch with near-to-far learning. Writes "
+            "DIR/map.tif (float bands), DIR/map_class.tif (class with colour table), one PNG "
+            "per layer, DIR/labels.csv and DIR/features.csv."
+        ),
+    )
+    p.add_argument("traverse", type=Path, metavar="TRAVERSE")
+    p.add_argument("--model", type=Path, default=None, metavar="M",
+                   help="terrain model (default: models/default shipped with rough_map)")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR")
+    p.add_argument("--resolution", type=float, default=0.1, metavar="M",
+                   help="map cell size in m (default 0.1)")
+    p.add_argument("--near-far", choices=("auto", "on", "off"), default="auto",
+                   help="near-to-far from the stereo images (auto: when there are images)")
+    p.add_argument("--no-png", action="store_true", help="skip the PNGs")
+    p.add_argument("--gridmap-bag", action="store_true",
+                   help="also write a grid_map_msgs/GridMap message in an MCAP bag")
+    p.add_argument("--json", action="store_true", help="paths and figures as JSON on stdout")
+    p.set_defaults(func=run)
+
+
+def default_model() -> Path:
+    """The model shipped in ``models/default`` (next to the package, or in the checkout)."""
+    here = Path(__file__).resolve().parents[2] / "models" / "default"
+    return here
+
+
+def run(args: argparse.Namespace) -> int:
+    from rough_map.export import export_map
+    from rough_map.workflow import analyse, write_tables
+
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    near_far = {"auto": "auto", "on": True, "off": False}[args.near_far]
+    result = analyse(args.traverse, args.model or default_model(), resolution=args.resolution,
+                     near_far=near_far, progress=args.progress)
+    paths = {k: str(v) for k, v in export_map(result.map, out, name="map", png=not args.no_png,
+                                              gridmap_bag=args.gridmap_bag).items()}
+    paths.update({k: str(v) for k, v in write_tables(result, out).items()})
+    summary = {"traverse": result.traverse.name, "frames": len(result.features),
+               "valid": int(result.features.valid.sum()), "map_shape": list(result.map.shape),
+               "resolution_m": args.resolution, **result.far_report, "outputs": paths}
+    if args.json:
+        emit_json(summary)
+        return 0
+    rows = [[k, v] for k, v in paths.items()]
+    print(table(rows, ["output", "path"]))
+    if result.far_report:
+        r = result.far_report
+        print(f"near field {r['near_area_m2']:.1f} m^2, with near-to-far "
+              f"{r['near_far_area_m2']:.1f} m^2 (x{r['area_ratio']:.1f})", file=sys.stderr)
+    return 0

@@ -1,0 +1,55 @@
+"""``rough-map report TRAVERSE --out DIR``: the paper's figures and an index.html."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "report",
+        help="draw the paper's figures for a traverse, with the map and the evaluation",
+        description=(
+            "Run the whole chain on a traverse (features, classes, filter, map, near-to-far "
+            "when there are images) and write DIR/index.html with: R and w along the path "
+            "with sigma bands and ISO lines (paper Figs. 7/9/12), the PSD of one profile with "
+            "its fit (Fig. 4), the per-profile (R, w) scatter (Fig. 5), the fitted PSD lines "
+            "against the ISO classes (Fig. 10), (R, w) by class with the roughness levels "
+            "(Fig. 19), the elevation, roughness and class layers with the path (Figs. 20/21) "
+            "and, when the frames are labelled, the confusion matrices."
+        ),
+    )
+    p.add_argument("traverse", type=Path, metavar="TRAVERSE")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR")
+    p.add_argument("--model", type=Path, default=None, metavar="M",
+                   help="terrain model (default: models/default)")
+    p.add_argument("--resolution", type=float, default=0.1, metavar="M",
+                   help="map cell size in m (default 0.1)")
+    p.add_argument("--near-far", choices=("auto", "on", "off"), default="auto")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from rough_map.cli.map import default_model
+    from rough_map.classify import evaluate_model
+    from rough_map.export import export_map
+    from rough_map.export.report import write_report
+    from rough_map.workflow import analyse, level_edges, write_tables
+
+    near_far = {"auto": "auto", "on": True, "off": False}[args.near_far]
+    model_path = args.model or default_model()
+    result = analyse(args.traverse, model_path, resolution=args.resolution,
+                     near_far=near_far, progress=args.progress)
+    evaluation = None
+    if any(result.features["label"]):
+        evaluation = evaluate_model(result.model, [result.features])
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    export_map(result.map, out, name="map", png=False)
+    write_tables(result, out)
+    paths = write_report(result, out, evaluation=evaluation, level_edges=level_edges(result))
+    print(paths["index"])
+    print(f"report of {result.traverse.name} in {out}", file=sys.stderr)
+    return 0
