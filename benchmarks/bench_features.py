@@ -24,12 +24,12 @@ import numpy as np
 from scipy import stats
 
 sys.path.insert(0, str(Path(__file__).parent))
-from bench_psd import baseline as baseline_psd  # noqa: E402
+from bench_psd import baseline as baseline_psd
 
-from rough_map import terrain  # noqa: E402
-from rough_map.patch import PatchSpec, grid_points  # noqa: E402
-from rough_map.psd import patch_roughness  # noqa: E402
-from rough_map.types import HeightField  # noqa: E402
+from rough_map import terrain
+from rough_map.patch import PatchSpec, grid_points
+from rough_map.psd import patch_roughness
+from rough_map.types import HeightField
 
 
 def make_cloud(n: int, seed: int = 0) -> np.ndarray:
@@ -43,20 +43,29 @@ def make_cloud(n: int, seed: int = 0) -> np.ndarray:
 
 def ours(points: np.ndarray) -> tuple[float, float]:
     g = grid_points(points)
-    r = patch_roughness(g.heights, 0.008, gridding=g.gridding, noise_psd=g.noise_psd,
-                        subtract_noise=True)
+    r = patch_roughness(
+        g.heights, 0.008, gridding=g.gridding, noise_psd=g.noise_psd, subtract_noise=True
+    )
     return r.R, r.w
 
 
 def baseline(points: np.ndarray) -> tuple[float, float]:
     spec = PatchSpec()
     x0, y0, n, b = spec.x0, spec.y0, spec.n, spec.spacing
-    inside = ((points[:, 0] >= x0) & (points[:, 0] < x0 + n * b)
-              & (points[:, 1] >= y0) & (points[:, 1] < y0 + n * b))
+    inside = (
+        (points[:, 0] >= x0)
+        & (points[:, 0] < x0 + n * b)
+        & (points[:, 1] >= y0)
+        & (points[:, 1] < y0 + n * b)
+    )
     p = points[inside]
     mean, _, _, _ = stats.binned_statistic_2d(
-        p[:, 1], p[:, 0], p[:, 2], "mean",
-        bins=[np.linspace(y0, y0 + n * b, n + 1), np.linspace(x0, x0 + n * b, n + 1)])
+        p[:, 1],
+        p[:, 0],
+        p[:, 2],
+        "mean",
+        bins=[np.linspace(y0, y0 + n * b, n + 1), np.linspace(x0, x0 + n * b, n + 1)],
+    )
     return baseline_psd(np.nan_to_num(mean, nan=np.nanmean(mean)))
 
 
@@ -87,13 +96,19 @@ def main() -> None:
         np.save(path, cloud)
         runs = []
         for _ in range(3):
-            out = subprocess.run([sys.executable, "-m", "rough_map", "features", str(path),
-                                  "--json"], capture_output=True, text=True, check=True)
+            out = subprocess.run(
+                [sys.executable, "-m", "rough_map", "features", str(path), "--json"],
+                capture_output=True,
+                text=True,
+                check=True,
+            )
             runs.append(json.loads(out.stdout)["timing_ms"])
         proc = min(r["process"] for r in runs)
         load = min(r["load"] for r in runs)
-        print(f"`rough-map features --json` (best of 3): {proc:8.1f} ms after loading "
-              f"({load:.1f} ms to load)")
+        print(
+            f"`rough-map features --json` (best of 3): {proc:8.1f} ms after loading "
+            f"({load:.1f} ms to load)"
+        )
 
 
 if __name__ == "__main__":

@@ -32,9 +32,28 @@ log = logging.getLogger(__name__)
 
 #: Columns of a features table, in order (spectrum columns follow).
 COLUMNS = (
-    "frame", "t", "x", "y", "yaw", "R", "w", "sigma_R", "sigma_w", "rms", "iso_class",
-    "n_points", "valid", "reason", "label", "R_lat", "w_lat", "fit_residual", "fill",
-    "point_noise", "noise_psd", "level_angle",
+    "frame",
+    "t",
+    "x",
+    "y",
+    "yaw",
+    "R",
+    "w",
+    "sigma_R",
+    "sigma_w",
+    "rms",
+    "iso_class",
+    "n_points",
+    "valid",
+    "reason",
+    "label",
+    "R_lat",
+    "w_lat",
+    "fit_residual",
+    "fill",
+    "point_noise",
+    "noise_psd",
+    "level_angle",
 )
 _TEXT = {"iso_class", "reason", "label"}
 _BOOL = {"valid"}
@@ -104,23 +123,48 @@ def frame_features(
     except RoughMapError as exc:
         row["reason"] = f"too few points: {exc}" if "points" in str(exc) else str(exc)
         return row, None, None
-    row.update(n_points=grid.n_points, fill=grid.fill_fraction, point_noise=grid.point_noise,
-               noise_psd=grid.noise_psd, level_angle=grid.level_angle)
+    row.update(
+        n_points=grid.n_points,
+        fill=grid.fill_fraction,
+        point_noise=grid.point_noise,
+        noise_psd=grid.noise_psd,
+        level_angle=grid.level_angle,
+    )
     if grid.fill_fraction < min_fill:
         row["reason"] = f"too many gaps: {grid.fill_fraction:.0%} of cells filled"
         return row, None, None
     noise = grid.noise_psd if subtract_noise and math.isfinite(grid.noise_psd) else None
     try:
-        lon = patch_roughness(grid.heights, spec.spacing, method=method, noise_psd=noise,
-                              subtract_noise=noise is not None, gridding=grid.gridding)
-        lat = patch_roughness(grid.heights.T, spec.spacing, method=method, noise_psd=noise,
-                              subtract_noise=noise is not None, gridding=grid.gridding)
+        lon = patch_roughness(
+            grid.heights,
+            spec.spacing,
+            method=method,
+            noise_psd=noise,
+            subtract_noise=noise is not None,
+            gridding=grid.gridding,
+        )
+        lat = patch_roughness(
+            grid.heights.T,
+            spec.spacing,
+            method=method,
+            noise_psd=noise,
+            subtract_noise=noise is not None,
+            gridding=grid.gridding,
+        )
     except RoughMapError as exc:
         row["reason"] = str(exc)
         return row, None, None
     row.update(
-        valid=True, R=lon.R, w=lon.w, sigma_R=lon.sigma_R, sigma_w=lon.sigma_w, rms=lon.rms,
-        iso_class=lon.iso_class, R_lat=lat.R, w_lat=lat.w, fit_residual=lon.fit_residual,
+        valid=True,
+        R=lon.R,
+        w=lon.w,
+        sigma_R=lon.sigma_R,
+        sigma_w=lon.sigma_w,
+        rms=lon.rms,
+        iso_class=lon.iso_class,
+        R_lat=lat.R,
+        w_lat=lat.w,
+        fit_residual=lon.fit_residual,
     )
     return row, lon.omega, lon.psd
 
@@ -175,8 +219,7 @@ def traverse_features(
     rows: list[dict] = []
     spectra: list[np.ndarray | None] = []
     omega = None
-    for i in tqdm(range(n), desc=f"features {traverse.name}", unit="frame",
-                  disable=not progress):
+    for i in tqdm(range(n), desc=f"features {traverse.name}", unit="frame", disable=not progress):
         frame = traverse.frames[i]
         use_stereo = source == "stereo" or (source == "auto" and frame.cloud is None)
         try:
@@ -186,20 +229,37 @@ def traverse_features(
             else:
                 points = traverse.load_cloud(i)
         except FileFormatError as exc:
-            row, om, psd = {"valid": False, "reason": f"unreadable: {exc}", "n_points": 0}, None, None
+            row, om, psd = (
+                {"valid": False, "reason": f"unreadable: {exc}", "n_points": 0},
+                None,
+                None,
+            )
         else:
             roll = pitch = None
             if use_imu and frame.imu is not None:
                 roll, pitch = frame.imu.roll, frame.imu.pitch
-            row, om, psd = frame_features(points, spec, roll=roll, pitch=pitch, method=method,
-                                          subtract_noise=subtract_noise,
-                                          min_points=min_points, min_fill=min_fill)
+            row, om, psd = frame_features(
+                points,
+                spec,
+                roll=roll,
+                pitch=pitch,
+                method=method,
+                subtract_noise=subtract_noise,
+                min_points=min_points,
+                min_fill=min_fill,
+            )
         if om is not None:
             omega = om
         if not row["valid"]:
             log.info("frame %d invalid: %s", i, row["reason"])
-        row.update(frame=i, t=frame.t, x=frame.pose.x, y=frame.pose.y, yaw=frame.pose.yaw,
-                   label=frame.label or "")
+        row.update(
+            frame=i,
+            t=frame.t,
+            x=frame.pose.x,
+            y=frame.pose.y,
+            yaw=frame.pose.yaw,
+            label=frame.label or "",
+        )
         rows.append(row)
         spectra.append(psd)
     if omega is None:
@@ -238,9 +298,7 @@ class _StereoSource:
             raise InputError(f"{traverse.name}: stereo needs a 'calibration' in the traverse")
         self.traverse = traverse
         self.spec = spec
-        self.calib = StereoCalibration.model_validate(
-            traverse.spec.calibration.model_dump()
-        )
+        self.calib = StereoCalibration.model_validate(traverse.spec.calibration.model_dump())
 
     def cloud(self, i: int) -> np.ndarray:
         from rough_map.io.stereo import read_image, stereo_to_cloud
@@ -250,8 +308,14 @@ class _StereoSource:
             raise InputError(f"{self.traverse.name}: frames[{i}] has no stereo pair")
         left = read_image(self.traverse.resolve(frame.left))
         right = read_image(self.traverse.resolve(frame.right))
-        return stereo_to_cloud(left, right, self.calib, ahead=self.spec.ahead,
-                               size=self.spec.n * self.spec.spacing, lateral=self.spec.lateral)
+        return stereo_to_cloud(
+            left,
+            right,
+            self.calib,
+            ahead=self.spec.ahead,
+            size=self.spec.n * self.spec.spacing,
+            lateral=self.spec.lateral,
+        )
 
 
 # --------------------------------------------------------------------------- files
@@ -273,8 +337,10 @@ def write_features(table: FeatureTable, path: str | Path) -> Path:
         except ImportError:
             raise InputError("writing .parquet needs pyarrow: pip install pyarrow") from None
         arrays = {k: (list(v) if k in _TEXT else v) for k, v in data.items()}
-        meta = {b"omega": ",".join(f"{o:.12g}" for o in table.omega).encode(),
-                b"name": table.name.encode()}
+        meta = {
+            b"omega": ",".join(f"{o:.12g}" for o in table.omega).encode(),
+            b"name": table.name.encode(),
+        }
         tbl = pa.table(arrays).replace_schema_metadata(meta)
         with atomic_output(path) as tmp:
             pq.write_table(tbl, tmp)
@@ -282,8 +348,11 @@ def write_features(table: FeatureTable, path: str | Path) -> Path:
     if path.suffix != ".csv":
         raise InputError(f"features are written as .csv or .parquet, not {path.suffix!r}")
     with atomic_output(path) as tmp, open(tmp, "w", newline="") as fh:
-        fh.write(f"# rough_map features of {table.name}; omega_rad_per_m="
-                 + ",".join(f"{o:.12g}" for o in table.omega) + "\n")
+        fh.write(
+            f"# rough_map features of {table.name}; omega_rad_per_m="
+            + ",".join(f"{o:.12g}" for o in table.omega)
+            + "\n"
+        )
         writer = csv.writer(fh)
         writer.writerow(names)
         for i in range(len(table)):
@@ -317,15 +386,17 @@ def read_features(path: str | Path) -> FeatureTable:
             first = fh.readline()
             if not first.startswith("# rough_map features") or "omega_rad_per_m=" not in first:
                 raise FileFormatError(path, "not a rough_map features table (header line)")
-            name = first[len("# rough_map features of "):].split(";")[0]
+            name = first[len("# rough_map features of ") :].split(";")[0]
             omega = np.array([float(v) for v in first.split("omega_rad_per_m=")[1].split(",")])
             reader = csv.reader(fh)
             header = next(reader, None)
             if header is None:
                 raise FileFormatError(path, "truncated: no column header")
             body = list(reader)
-        raw = {h: np.array([r[j] if j < len(r) else "" for r in body], dtype=object)
-               for j, h in enumerate(header)}
+        raw = {
+            h: np.array([r[j] if j < len(r) else "" for r in body], dtype=object)
+            for j, h in enumerate(header)
+        }
     missing = [c for c in COLUMNS if c not in raw]
     if missing:
         raise FileFormatError(path, f"missing columns {missing}", field=missing[0])
@@ -345,9 +416,16 @@ def read_features(path: str | Path) -> FeatureTable:
             raise FileFormatError(path, f"bad value: {exc}", field=c) from None
     names = [f"psd_{k:02d}" for k in range(1, omega.size + 1)]
     try:
-        log_psd = np.column_stack(
-            [np.array([float(x) if x not in ("", None) else math.nan for x in raw[n]])
-             for n in names]) if names else np.zeros((len(cols["t"]), 0))
+        log_psd = (
+            np.column_stack(
+                [
+                    np.array([float(x) if x not in ("", None) else math.nan for x in raw[n]])
+                    for n in names
+                ]
+            )
+            if names
+            else np.zeros((len(cols["t"]), 0))
+        )
     except KeyError as exc:
         raise FileFormatError(path, "missing spectrum column", field=str(exc)) from None
     return FeatureTable(cols, omega, log_psd, name)

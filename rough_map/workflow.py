@@ -192,8 +192,7 @@ def add_elevation(grid: Any, traverse: Any, *, sample: int = 20_000) -> None:
         np.add.at(counts, (rows[ok], cols[ok]), 1.0)
     with np.errstate(invalid="ignore", divide="ignore"):
         elev = np.where(counts > 0, sums / counts, np.nan)
-    grid.add_layer("elevation", units="m", description="mean terrain height (world z)",
-                   data=elev)
+    grid.add_layer("elevation", units="m", description="mean terrain height (world z)", data=elev)
 
 
 def _near_to_far(result: TraverseAnalysis, weight: float, progress: bool):
@@ -202,15 +201,15 @@ def _near_to_far(result: TraverseAnalysis, weight: float, progress: bool):
 
     pred = result.prediction
     labels = np.where(pred.valid, pred.filtered_class, "")
-    far = n2f.run_traverse(result.traverse, labels, classes=tuple(pred.classes),
-                           progress=progress)
+    far = n2f.run_traverse(result.traverse, labels, classes=tuple(pred.classes), progress=progress)
     grid = result.map
     for fp in far:
         if len(fp) == 0:
             continue
         cells = grid.cells_at(fp.x, fp.y)
-        fuse_cell_probabilities(grid, cells, fp.proba, weight=weight, group="far",
-                                t=getattr(fp, "t", None))
+        fuse_cell_probabilities(
+            grid, cells, fp.proba, weight=weight, group="far", t=getattr(fp, "t", None)
+        )
     report = coverage_report(grid)
     world = _world_truth(result.traverse)
     if world is not None and far:
@@ -224,10 +223,13 @@ def coverage_report(grid: Any) -> dict:
     total = near.copy()
     if "far_class" in grid.layers:
         total |= np.isfinite(grid["far_class"])
-    cell = grid.geometry.resolution ** 2
+    cell = grid.geometry.resolution**2
     a_near, a_all = float(near.sum() * cell), float(total.sum() * cell)
-    return {"near_area_m2": a_near, "near_far_area_m2": a_all,
-            "area_ratio": a_all / a_near if a_near else math.nan}
+    return {
+        "near_area_m2": a_near,
+        "near_far_area_m2": a_all,
+        "area_ratio": a_all / a_near if a_near else math.nan,
+    }
 
 
 def _world_truth(traverse: Any):
@@ -250,10 +252,12 @@ def map_accuracy(grid: Any, world: Any, layer: str = "class") -> float:
     if rows.size == 0:
         return math.nan
     x, y = grid.geometry.cell_center(rows, cols)
-    j = np.clip(np.round((x - world.origin[0]) / world.spacing).astype(int), 0,
-                world.heights.shape[1] - 1)
-    i = np.clip(np.round((y - world.origin[1]) / world.spacing).astype(int), 0,
-                world.heights.shape[0] - 1)
+    j = np.clip(
+        np.round((x - world.origin[0]) / world.spacing).astype(int), 0, world.heights.shape[1] - 1
+    )
+    i = np.clip(
+        np.round((y - world.origin[1]) / world.spacing).astype(int), 0, world.heights.shape[0] - 1
+    )
     truth = np.asarray(world.class_names, dtype=object)[world.classes[i, j]]
     pred = np.asarray(names, dtype=object)[arr[rows, cols].astype(int)]
     return float(np.mean(truth == pred))
@@ -275,15 +279,40 @@ def write_tables(result: TraverseAnalysis, out_dir: str | Path) -> dict[str, Pat
     path = out / "labels.csv"
     with atomic_output(path) as tmp, open(tmp, "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["frame", "t", "x", "y", "distance", "valid", "label", "raw_class",
-                    "raw_p", "filtered_class", "filtered_p", "level"])
+        w.writerow(
+            [
+                "frame",
+                "t",
+                "x",
+                "y",
+                "distance",
+                "valid",
+                "label",
+                "raw_class",
+                "raw_p",
+                "filtered_class",
+                "filtered_p",
+                "level",
+            ]
+        )
         raw_p = pred.raw_confidence
         filt_p = pred.filtered_confidence
         for i in range(len(f)):
-            w.writerow([int(f["frame"][i]), f"{f['t'][i]:.6g}", f"{f['x'][i]:.4f}",
-                        f"{f['y'][i]:.4f}", f"{pred.distance[i]:.4f}",
-                        "true" if pred.valid[i] else "false", f["label"][i],
-                        pred.raw_class[i], "" if not np.isfinite(raw_p[i]) else f"{raw_p[i]:.4f}",
-                        pred.filtered_class[i], f"{filt_p[i]:.4f}", pred.level[i]])
+            w.writerow(
+                [
+                    int(f["frame"][i]),
+                    f"{f['t'][i]:.6g}",
+                    f"{f['x'][i]:.4f}",
+                    f"{f['y'][i]:.4f}",
+                    f"{pred.distance[i]:.4f}",
+                    "true" if pred.valid[i] else "false",
+                    f["label"][i],
+                    pred.raw_class[i],
+                    "" if not np.isfinite(raw_p[i]) else f"{raw_p[i]:.4f}",
+                    pred.filtered_class[i],
+                    f"{filt_p[i]:.4f}",
+                    pred.level[i],
+                ]
+            )
     paths["labels"] = path
     return paths

@@ -17,8 +17,7 @@ def _texture_scan() -> tuple[np.ndarray, np.ndarray]:
     path = DATA / "captif_aylesbury_station_0.dat"
     with open(path, encoding="latin-1") as fh:
         skip = next(i for i, line in enumerate(fh) if line.startswith("*****DATA")) + 2
-    a = np.genfromtxt(path, delimiter="\t", skip_header=skip, usecols=(0, 1, 2),
-                      encoding="latin-1")
+    a = np.genfromtxt(path, delimiter="\t", skip_header=skip, usecols=(0, 1, 2), encoding="latin-1")
     depth = a[:, 2].copy()
     depth[np.isclose(depth, 47.5)] = np.nan  # the reference plates saturate the sensor
     return a[:, 1] / 1000.0, depth / 1000.0

@@ -140,8 +140,13 @@ def test_world_and_drive_are_seeded():
 
 def test_random_course_has_all_classes():
     segs, _ = course_layout("random", 200.0, seed=1)
-    assert {s.surface for s in segs} == {"concrete", "dirt_road", "gravel", "compact_soil",
-                                         "ploughed_soil"}
+    assert {s.surface for s in segs} == {
+        "concrete",
+        "dirt_road",
+        "gravel",
+        "compact_soil",
+        "ploughed_soil",
+    }
     assert segs[-1].end == pytest.approx(200.0)
 
 

@@ -18,24 +18,39 @@ def run_traverse(args: argparse.Namespace) -> int:
     if args.out is None:
         raise InputError("a traverse needs --out FILE (.csv, or .parquet with pyarrow)")
     if args.roll is not None or args.pitch is not None:
-        raise InputError("--roll/--pitch are for a single cloud; a traverse uses its IMU "
-                         "(or --no-tilt)")
+        raise InputError(
+            "--roll/--pitch are for a single cloud; a traverse uses its IMU (or --no-tilt)"
+        )
     feats = traverse_features(
-        args.source, patch_spec(args), use_imu=not args.no_tilt, source=args.points_from,
-        method=args.method, subtract_noise=not args.keep_noise, progress=args.progress,
+        args.source,
+        patch_spec(args),
+        use_imu=not args.no_tilt,
+        source=args.points_from,
+        method=args.method,
+        subtract_noise=not args.keep_noise,
+        progress=args.progress,
     )
     write_features(feats, args.out)
     valid = feats.valid
-    print(f"wrote {len(feats)} frames ({int((~valid).sum())} invalid) to {args.out}",
-          file=sys.stderr)
+    print(
+        f"wrote {len(feats)} frames ({int((~valid).sum())} invalid) to {args.out}", file=sys.stderr
+    )
     if args.json:
         from rough_map.cli._common import emit_json
 
-        emit_json({"file": str(args.out), "frames": len(feats), "invalid": int((~valid).sum()),
-                   "summary": _summary(feats)})
+        emit_json(
+            {
+                "file": str(args.out),
+                "frames": len(feats),
+                "invalid": int((~valid).sum()),
+                "summary": _summary(feats),
+            }
+        )
         return 0
-    rows = [[k, str(v["frames"]), f"{v['R']:.3e}", f"{v['w']:.2f}", v["iso"]]
-            for k, v in _summary(feats).items()]
+    rows = [
+        [k, str(v["frames"]), f"{v['R']:.3e}", f"{v['w']:.2f}", v["iso"]]
+        for k, v in _summary(feats).items()
+    ]
     print(table(rows, ["label", "frames", "R m^3/rad (geo. mean)", "w (mean)", "ISO"]))
     return 0
 
@@ -51,7 +66,10 @@ def _summary(feats) -> dict:
         if not sel.any():
             continue
         r = math.exp(float(np.mean(np.log(feats["R"][sel]))))
-        out[lab or "(unlabelled)"] = {"frames": int(sel.sum()), "R": r,
-                                      "w": float(np.mean(feats["w"][sel])),
-                                      "iso": str(iso_class(r))}
+        out[lab or "(unlabelled)"] = {
+            "frames": int(sel.sum()),
+            "R": r,
+            "w": float(np.mean(feats["w"][sel])),
+            "iso": str(iso_class(r)),
+        }
     return out

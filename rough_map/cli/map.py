@@ -23,16 +23,33 @@ def register(sub: argparse._SubParsersAction) -> None:
         ),
     )
     p.add_argument("traverse", type=Path, metavar="TRAVERSE")
-    p.add_argument("--model", type=Path, default=None, metavar="M",
-                   help="terrain model (default: models/default shipped with rough_map)")
+    p.add_argument(
+        "--model",
+        type=Path,
+        default=None,
+        metavar="M",
+        help="terrain model (default: models/default shipped with rough_map)",
+    )
     p.add_argument("--out", type=Path, required=True, metavar="DIR")
-    p.add_argument("--resolution", type=float, default=0.1, metavar="M",
-                   help="map cell size in m (default 0.1)")
-    p.add_argument("--near-far", choices=("auto", "on", "off"), default="auto",
-                   help="near-to-far from the stereo images (auto: when there are images)")
+    p.add_argument(
+        "--resolution",
+        type=float,
+        default=0.1,
+        metavar="M",
+        help="map cell size in m (default 0.1)",
+    )
+    p.add_argument(
+        "--near-far",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="near-to-far from the stereo images (auto: when there are images)",
+    )
     p.add_argument("--no-png", action="store_true", help="skip the PNGs")
-    p.add_argument("--gridmap-bag", action="store_true",
-                   help="also write a grid_map_msgs/GridMap message in an MCAP bag")
+    p.add_argument(
+        "--gridmap-bag",
+        action="store_true",
+        help="also write a grid_map_msgs/GridMap message in an MCAP bag",
+    )
     p.add_argument("--json", action="store_true", help="paths and figures as JSON on stdout")
     p.set_defaults(func=run)
 
@@ -50,14 +67,29 @@ def run(args: argparse.Namespace) -> int:
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     near_far = {"auto": "auto", "on": True, "off": False}[args.near_far]
-    result = analyse(args.traverse, args.model or default_model(), resolution=args.resolution,
-                     near_far=near_far, progress=args.progress)
-    paths = {k: str(v) for k, v in export_map(result.map, out, name="map", png=not args.no_png,
-                                              gridmap_bag=args.gridmap_bag).items()}
+    result = analyse(
+        args.traverse,
+        args.model or default_model(),
+        resolution=args.resolution,
+        near_far=near_far,
+        progress=args.progress,
+    )
+    paths = {
+        k: str(v)
+        for k, v in export_map(
+            result.map, out, name="map", png=not args.no_png, gridmap_bag=args.gridmap_bag
+        ).items()
+    }
     paths.update({k: str(v) for k, v in write_tables(result, out).items()})
-    summary = {"traverse": result.traverse.name, "frames": len(result.features),
-               "valid": int(result.features.valid.sum()), "map_shape": list(result.map.shape),
-               "resolution_m": args.resolution, **result.far_report, "outputs": paths}
+    summary = {
+        "traverse": result.traverse.name,
+        "frames": len(result.features),
+        "valid": int(result.features.valid.sum()),
+        "map_shape": list(result.map.shape),
+        "resolution_m": args.resolution,
+        **result.far_report,
+        "outputs": paths,
+    }
     if args.json:
         emit_json(summary)
         return 0
@@ -65,6 +97,9 @@ def run(args: argparse.Namespace) -> int:
     print(table(rows, ["output", "path"]))
     if result.far_report:
         r = result.far_report
-        print(f"near field {r['near_area_m2']:.1f} m^2, with near-to-far "
-              f"{r['near_far_area_m2']:.1f} m^2 (x{r['area_ratio']:.1f})", file=sys.stderr)
+        print(
+            f"near field {r['near_area_m2']:.1f} m^2, with near-to-far "
+            f"{r['near_far_area_m2']:.1f} m^2 (x{r['area_ratio']:.1f})",
+            file=sys.stderr,
+        )
     return 0

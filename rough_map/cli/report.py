@@ -23,25 +23,40 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("traverse", type=Path, metavar="TRAVERSE")
     p.add_argument("--out", type=Path, required=True, metavar="DIR")
-    p.add_argument("--model", type=Path, default=None, metavar="M",
-                   help="terrain model (default: models/default)")
-    p.add_argument("--resolution", type=float, default=0.1, metavar="M",
-                   help="map cell size in m (default 0.1)")
+    p.add_argument(
+        "--model",
+        type=Path,
+        default=None,
+        metavar="M",
+        help="terrain model (default: models/default)",
+    )
+    p.add_argument(
+        "--resolution",
+        type=float,
+        default=0.1,
+        metavar="M",
+        help="map cell size in m (default 0.1)",
+    )
     p.add_argument("--near-far", choices=("auto", "on", "off"), default="auto")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from rough_map.cli.map import default_model
     from rough_map.classify import evaluate_model
+    from rough_map.cli.map import default_model
     from rough_map.export import export_map
     from rough_map.export.report import write_report
     from rough_map.workflow import analyse, level_edges, write_tables
 
     near_far = {"auto": "auto", "on": True, "off": False}[args.near_far]
     model_path = args.model or default_model()
-    result = analyse(args.traverse, model_path, resolution=args.resolution,
-                     near_far=near_far, progress=args.progress)
+    result = analyse(
+        args.traverse,
+        model_path,
+        resolution=args.resolution,
+        near_far=near_far,
+        progress=args.progress,
+    )
     evaluation = None
     if any(result.features["label"]):
         evaluation = evaluate_model(result.model, [result.features])

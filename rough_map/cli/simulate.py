@@ -24,19 +24,37 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="new folder")
     p.add_argument("--course", choices=COURSES, default="mixed")
     p.add_argument("--length", type=float, metavar="M", help="course length in m")
-    p.add_argument("--speed", type=float, default=0.5, metavar="M/S",
-                   help="rover speed in m/s (default 0.5)")
-    p.add_argument("--rate", type=float, default=2.0, metavar="HZ",
-                   help="frame rate in Hz (default 2)")
+    p.add_argument(
+        "--speed", type=float, default=0.5, metavar="M/S", help="rover speed in m/s (default 0.5)"
+    )
+    p.add_argument(
+        "--rate", type=float, default=2.0, metavar="HZ", help="frame rate in Hz (default 2)"
+    )
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--no-images", action="store_true",
-                   help="skip rendering the stereo pairs (much faster)")
-    p.add_argument("--image-every", type=int, default=1, metavar="N",
-                   help="render the stereo pair of every N-th frame only (default 1)")
-    p.add_argument("--points-per-cell", type=float, default=12.0, metavar="N",
-                   help="density of the simulated range cloud per 8 mm cell (default 12)")
-    p.add_argument("--noise", type=float, default=0.0003, metavar="M",
-                   help="range noise of the cloud in m (default 0.0003)")
+    p.add_argument(
+        "--no-images", action="store_true", help="skip rendering the stereo pairs (much faster)"
+    )
+    p.add_argument(
+        "--image-every",
+        type=int,
+        default=1,
+        metavar="N",
+        help="render the stereo pair of every N-th frame only (default 1)",
+    )
+    p.add_argument(
+        "--points-per-cell",
+        type=float,
+        default=12.0,
+        metavar="N",
+        help="density of the simulated range cloud per 8 mm cell (default 12)",
+    )
+    p.add_argument(
+        "--noise",
+        type=float,
+        default=0.0003,
+        metavar="M",
+        help="range noise of the cloud in m (default 0.0003)",
+    )
     p.set_defaults(func=run)
 
 
@@ -44,10 +62,18 @@ def run(args: argparse.Namespace) -> int:
     from rough_map.simulate.course import SensorSpec, simulate
 
     sensor = SensorSpec(points_per_cell=args.points_per_cell, noise=args.noise)
-    path = simulate(args.out, args.course, length=args.length, speed=args.speed,
-                    rate=args.rate, seed=args.seed, images=not args.no_images,
-                    image_every=args.image_every, sensor=sensor,
-                    progress=args.progress)
+    path = simulate(
+        args.out,
+        args.course,
+        length=args.length,
+        speed=args.speed,
+        rate=args.rate,
+        seed=args.seed,
+        images=not args.no_images,
+        image_every=args.image_every,
+        sensor=sensor,
+        progress=args.progress,
+    )
     print(path)
     print(f"simulated the {args.course} course into {args.out}", file=sys.stderr)
     return 0

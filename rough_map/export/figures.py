@@ -339,7 +339,14 @@ def confusion_matrices(evaluation: dict, path: str | Path) -> Path:
         ax.set_title(f"{key}: macro-F1 {part['macro_f1']:.3f}, accuracy {part['accuracy']:.3f}")
         for i in range(cm.shape[0]):
             for j in range(cm.shape[1]):
-                ax.text(j, i, f"{cm[i, j]:.2f}", ha="center", va="center",
-                        color="white" if cm[i, j] > 0.5 else "black", fontsize=8)
+                ax.text(
+                    j,
+                    i,
+                    f"{cm[i, j]:.2f}",
+                    ha="center",
+                    va="center",
+                    color="white" if cm[i, j] > 0.5 else "black",
+                    fontsize=8,
+                )
     fig.colorbar(im, ax=list(axes), shrink=0.8, label="fraction of the true class")
     return _save(plt, fig, path)

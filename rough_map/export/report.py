@@ -46,30 +46,50 @@ def write_report(
     f = result.features
     pred = result.prediction
     d = f.distance()
-    labels = list(f["label"]) if any(f["label"]) else (
-        list(pred.filtered_class) if pred is not None else None)
+    labels = (
+        list(f["label"])
+        if any(f["label"])
+        else (list(pred.filtered_class) if pred is not None else None)
+    )
     paths: dict[str, Path] = {}
     name = result.traverse.name
     paths["path"] = fig.roughness_along_path(
-        d, f["R"], f["sigma_R"], f["w"], f["sigma_w"], out / "fig_path.png", labels=labels,
-        title=f"{name}: roughness along the path")
+        d,
+        f["R"],
+        f["sigma_R"],
+        f["w"],
+        f["sigma_w"],
+        out / "fig_path.png",
+        labels=labels,
+        title=f"{name}: roughness along the path",
+    )
     frame = _representative_frame(f)
     if frame is not None:
         one = _frame_roughness(result.traverse, frame, result)
         if one is not None:
             rough, omega, profile, k = one
             paths["psd"] = fig.profile_psd_fit(
-                omega, profile, float(rough.profile_R[k]), float(rough.profile_w[k]),
+                omega,
+                profile,
+                float(rough.profile_R[k]),
+                float(rough.profile_w[k]),
                 out / "fig_psd_profile.png",
-                title=f"frame {frame}: PSD of profile {k} and its fit")
+                title=f"frame {frame}: PSD of profile {k} and its fit",
+            )
             paths["profiles"] = fig.profile_scatter(
-                rough.profile_R, rough.profile_w, rough.R, rough.w, out / "fig_profiles.png",
-                title=f"frame {frame}: roughness of the {rough.n_profiles} profiles")
+                rough.profile_R,
+                rough.profile_w,
+                rough.R,
+                rough.w,
+                out / "fig_profiles.png",
+                title=f"frame {frame}: roughness of the {rough.n_profiles} profiles",
+            )
     by_class = _class_means(f, labels)
     if by_class:
         paths["iso"] = fig.psd_lines_vs_iso(by_class, out / "fig_psd_iso.png")
-        paths["classes"] = fig.class_scatter(f["R"], f["w"], labels, out / "fig_classes.png",
-                                             level_edges=level_edges)
+        paths["classes"] = fig.class_scatter(
+            f["R"], f["w"], labels, out / "fig_classes.png", level_edges=level_edges
+        )
     paths["map"] = _map_figure(result, out / "fig_map.png")
     if evaluation is not None:
         from rough_map.export.figures import confusion_matrices
@@ -129,8 +149,10 @@ def _class_means(f: Any, labels: list | None) -> dict[str, tuple[float, float]]:
     for name in dict.fromkeys(lab):
         sel = f.valid & (lab == name)
         if name and sel.any():
-            out[str(name)] = (math.exp(float(np.mean(np.log(f["R"][sel])))),
-                              float(np.mean(f["w"][sel])))
+            out[str(name)] = (
+                math.exp(float(np.mean(np.log(f["R"][sel])))),
+                float(np.mean(f["w"][sel])),
+            )
     return out
 
 
@@ -162,17 +184,28 @@ def _map_figure(result: Any, path: Path) -> Path:
         titles["class + near-to-far"] = "terrain class with near-to-far (RGB appearance)"
     path_xy = np.column_stack([result.features["x"], result.features["y"]])
     values = {k: v for k, v in layers.items() if not k.startswith("class")}
-    out = fig.map_layers(values, extent, path.with_name(path.stem + "_values.png"),
-                         path_xy=path_xy, titles=titles)
+    out = fig.map_layers(
+        values, extent, path.with_name(path.stem + "_values.png"), path_xy=path_xy, titles=titles
+    )
     if names:
         cls = {"class": layers["class"]}
-        fig.map_layers(cls, extent, path.with_name(path.stem + "_class.png"), path_xy=path_xy,
-                       class_names=names, titles=titles)
+        fig.map_layers(
+            cls,
+            extent,
+            path.with_name(path.stem + "_class.png"),
+            path_xy=path_xy,
+            class_names=names,
+            titles=titles,
+        )
         if "class + near-to-far" in layers:
-            fig.map_layers({"class": layers["class + near-to-far"]}, extent,
-                           path.with_name(path.stem + "_class_far.png"), path_xy=path_xy,
-                           class_names=names,
-                           titles={"class": titles["class + near-to-far"]})
+            fig.map_layers(
+                {"class": layers["class + near-to-far"]},
+                extent,
+                path.with_name(path.stem + "_class_far.png"),
+                path_xy=path_xy,
+                class_names=names,
+                titles={"class": titles["class + near-to-far"]},
+            )
     return out
 
 
@@ -196,15 +229,20 @@ def _index(result: Any, out: Path, paths: dict[str, Path], evaluation: dict | No
     ]
     if result.far_report:
         r = result.far_report
-        parts.append(f"<p>Near field {r['near_area_m2']:.1f} m², with near-to-far "
-                     f"{r['near_far_area_m2']:.1f} m² (×{r['area_ratio']:.1f}).</p>")
+        parts.append(
+            f"<p>Near field {r['near_area_m2']:.1f} m², with near-to-far "
+            f"{r['near_far_area_m2']:.1f} m² (×{r['area_ratio']:.1f}).</p>"
+        )
         acc = r.get("far_accuracy_by_distance")
         if acc is not None:
             parts.append("<h2>Near-to-far accuracy against distance</h2>" + _html_table(acc))
     if evaluation is not None:
         parts.append("<h2>Evaluation</h2>")
-        rows = [[k, f"{evaluation[k]['accuracy']:.3f}", f"{evaluation[k]['macro_f1']:.3f}"]
-                for k in ("raw", "filtered") if k in evaluation]
+        rows = [
+            [k, f"{evaluation[k]['accuracy']:.3f}", f"{evaluation[k]['macro_f1']:.3f}"]
+            for k in ("raw", "filtered")
+            if k in evaluation
+        ]
         parts.append(_html_table({"labels": ["", "accuracy", "macro-F1"], "rows": rows}))
     for name in pics:
         parts.append(f"<h3>{esc(name)}</h3><img src='{esc(name)}' alt='{esc(name)}'>")

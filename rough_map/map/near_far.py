@@ -110,10 +110,11 @@ FEATURE_NAMES: tuple[str, ...] = (
 #: Added to the standard deviations before the log (L* and a*, b* units): keeps the log of a
 #: flat tile finite without mattering for textured ground (L* std 2-10 on rendered terrain).
 _STD_FLOOR = 0.05
-#: Lowest standard deviation a class keeps per feature in the unfamiliarity test (feature
-#: units): the near field of a few frames underestimates the spread of a class seen
-#: elsewhere (shading drifts with the viewing angle, colour noise grows with distance).
-_MIN_STD = np.array([1.5, 0.3, 0.6, 0.1, 0.1, 0.1])
+#: Default lowest standard deviation of a class per feature (units of
+#: :data:`FEATURE_NAMES`). Measured on rendered terrain, a class's far-field tile means stay
+#: within about 0.5 L*, 0.05 a* and 0.1 b* of its near-field means, and its log-stds drift
+#: by up to 0.4 (L*, fine texture fading with distance) and 0.08 (a*, b*).
+DEFAULT_MIN_STD: tuple[float, ...] = (1.0, 0.1, 0.2, 0.1, 0.05, 0.05)
 #: Accuracy-table bin edges (m of distance from the vehicle).
 DEFAULT_BINS = (1.5, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0)
 
@@ -422,6 +423,9 @@ class NearToFar:
         the batch median in some feature are not learnt; ``inf`` learns them all.
     min_near_tiles : int
         Fewest near-field tiles an update needs; fewer (the patch out of view) raises.
+    min_std : sequence of 6 float
+        Lowest standard deviation of each feature within a class (units of
+        :data:`FEATURE_NAMES`), see :data:`DEFAULT_MIN_STD`.
 
     Attributes
     ----------
@@ -445,6 +449,7 @@ class NearToFar:
         novelty_alpha: float = 1e-3,
         outlier_k: float = 4.0,
         min_near_tiles: int = 8,
+        min_std: Sequence[float] = DEFAULT_MIN_STD,
     ) -> None:
         self.classes = tuple(str(c) for c in classes)
         self.tile_px = int(tile_px)
@@ -457,7 +462,9 @@ class NearToFar:
         self.novelty_alpha = float(novelty_alpha)
         self.outlier_k = float(outlier_k)
         self.min_near_tiles = int(min_near_tiles)
+        self.min_std = tuple(float(v) for v in min_std)
         self._check_params()
+        self._min_var = np.square(np.asarray(self.min_std))[None, :]
         self._geometry_key: tuple[str, int] | None = None
         self._geometry: _TileGeometry | None = None
 
@@ -479,6 +486,11 @@ class NearToFar:
             )
         if not self.ground_step > 0:
             raise InputError(f"ground_step must be positive (m), got {self.ground_step}")
+        if len(self.min_std) != len(FEATURE_NAMES) or not all(v > 0 for v in self.min_std):
+            raise InputError(
+                f"min_std must be {len(FEATURE_NAMES)} positive numbers (units of "
+                f"{FEATURE_NAMES}), got {self.min_std}"
+            )
         if not 0.0 <= self.novelty_alpha < 1.0:
             raise InputError(f"novelty_alpha must be in [0, 1), got {self.novelty_alpha}")
 
@@ -608,29 +620,37 @@ class NearToFar:
 
     # ------------------------------------------------------------------------------ prediction
 
+    def _distances(
+        self, x: NDArray[np.float64]
+    ) -> tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.float64]]:
+        """Learnt classes, squared Mahalanobis distances (N, S) and variances (S, F).
+
+        Each class's variances are floored at ``min_std ** 2``: a few frames of near field
+        underestimate how much a class varies elsewhere (shading with the viewing angle,
+        fine texture fading with distance), and an unfloored naive Bayes extrapolates wildly
+        between classes whose spreads differ a lot.
+        """
+        seen = np.flatnonzero(self.seen_)
+        var = np.maximum(self.model_.var_[seen], self._min_var)
+        d2 = (((x[:, None, :] - self.model_.theta_[seen][None]) ** 2) / var[None]).sum(axis=-1)
+        return seen, d2, var
+
     def _nearest_class(
         self, x: NDArray[np.float64]
     ) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
-        """Nearest learnt class of feature rows and the chi-square tail probability there.
-
-        The squared Mahalanobis distance uses each class's variances widened to at least
-        ``_MIN_STD ** 2``; the tail probability is that of a chi-square variable with one
-        degree of freedom per feature.
-        """
+        """Nearest learnt class of feature rows and the chi-square tail probability there."""
         from scipy.stats import chi2
 
-        seen = np.flatnonzero(self.seen_)
-        mean = self.model_.theta_[seen]
-        wide = np.maximum(self.model_.var_[seen], _MIN_STD[None, :] ** 2)
-        d2 = (((x[:, None, :] - mean[None]) ** 2) / wide[None]).sum(axis=-1)
+        seen, d2, _ = self._distances(x)
         best = np.argmin(d2, axis=1)
         return seen[best], chi2.sf(d2[np.arange(len(x)), best], df=x.shape[1])
 
     def predict_proba_features(self, features: ArrayLike) -> NDArray[np.float64]:
         """Class probabilities of feature rows (:func:`tile_features`).
 
-        Equal priors over the classes learnt so far, zero for the others; unfamiliar rows are
-        pulled towards uniform over all classes (see ``novelty_alpha``).
+        Gaussian class likelihoods (variances floored at ``min_std ** 2``), equal priors over
+        the classes learnt so far and zero for the others; unfamiliar rows are pulled towards
+        uniform over all classes (see ``novelty_alpha``).
 
         Parameters
         ----------
@@ -648,21 +668,19 @@ class NearToFar:
             Before the first :meth:`update`.
         """
         from scipy.special import logsumexp
+        from scipy.stats import chi2
 
         if not hasattr(self, "model_"):
             raise NotFittedError("NearToFar has learnt nothing yet: call update() first")
         x = np.asarray(features, dtype=float)
         if x.ndim != 2 or x.shape[1] != len(FEATURE_NAMES):
             raise InputError(f"features must have shape (N, {len(FEATURE_NAMES)}), got {x.shape}")
-        seen = np.flatnonzero(self.seen_)
-        mean = self.model_.theta_[seen]
-        var = self.model_.var_[seen]
-        d2 = (((x[:, None, :] - mean[None]) ** 2) / var[None]).sum(axis=-1)  # (N, S)
+        seen, d2, var = self._distances(x)
         loglik = -0.5 * d2 - 0.5 * np.log(2.0 * np.pi * var).sum(axis=-1)[None]
         post = np.zeros((len(x), len(self.classes)))
         post[:, seen] = np.exp(loglik - logsumexp(loglik, axis=1, keepdims=True))
         if self.novelty_alpha > 0:
-            _, tail = self._nearest_class(x)
+            tail = chi2.sf(d2.min(axis=1), df=x.shape[1])
             known = np.clip(tail / self.novelty_alpha, 0.0, 1.0)[:, None]
             post = known * post + (1.0 - known) / len(self.classes)
         return post

@@ -67,9 +67,7 @@ def save_world(world: HeightField, path: Path) -> None:
         np.savez_compressed(
             fh,
             heights=world.heights.astype(np.float32),
-            classes=(world.classes if world.classes is not None else np.zeros(0)).astype(
-                np.int8
-            ),
+            classes=(world.classes if world.classes is not None else np.zeros(0)).astype(np.int8),
             spacing=world.spacing,
             origin=np.asarray(world.origin),
             class_names=np.asarray(world.class_names),
@@ -180,7 +178,7 @@ def simulate(
     out = Path(out_dir)
     try:
         find_traverse_file(out)
-    except Exception:  # noqa: BLE001 - any failure means there is no traverse there yet
+    except Exception:
         pass
     else:
         raise InputError(f"{out} already holds a traverse; choose a new --out folder")
@@ -190,8 +188,14 @@ def simulate(
     segments, defects = course_layout(course, length, seed)
     world = build_world(segments, defects, spacing=world_spacing, seed=seed, width=3.0)
     save_world(world, out / TRUTH_FILE)
-    poses = drive(world, segments[0].start, segments[-1].end - sensor.ahead - 0.5,
-                  speed=speed, rate=rate, seed=seed)
+    poses = drive(
+        world,
+        segments[0].start,
+        segments[-1].end - sensor.ahead - 0.5,
+        speed=speed,
+        rate=rate,
+        seed=seed,
+    )
     calib = None
     if images:
         from rough_map.io.stereo import StereoCalibration
@@ -201,8 +205,13 @@ def simulate(
         calib = StereoCalibration.xb3_default()
         textures = TextureSet(seed=seed)
         step = max(1, int(round(0.004 / world_spacing)))
-        view = HeightField(world.heights[::step, ::step], world.spacing * step, world.origin,
-                           world.classes[::step, ::step], world.class_names)
+        view = HeightField(
+            world.heights[::step, ::step],
+            world.spacing * step,
+            world.origin,
+            world.classes[::step, ::step],
+            world.class_names,
+        )
         (out / "left").mkdir(exist_ok=True)
         (out / "right").mkdir(exist_ok=True)
     frames = []
@@ -219,12 +228,15 @@ def simulate(
             "pose": {"x": x, "y": y, "z": z, "roll": roll, "pitch": pitch, "yaw": yaw},
             "cloud": cloud_rel,
             "label": label,
-            "imu": {"roll": roll + rng.normal(0, sensor.imu_noise),
-                    "pitch": pitch + rng.normal(0, sensor.imu_noise)},
+            "imu": {
+                "roll": roll + rng.normal(0, sensor.imu_noise),
+                "pitch": pitch + rng.normal(0, sensor.imu_noise),
+            },
         }
         if images and i % max(1, int(image_every)) == 0:
-            left, right, _ = render_stereo(view, pose6, calib, textures, seed=seed * 100003 + i,
-                                           color=True)
+            left, right, _ = render_stereo(
+                view, pose6, calib, textures, seed=seed * 100003 + i, color=True
+            )
             for side, img in (("left", left), ("right", right)):
                 rel = f"{side}/{i:06d}.png"
                 with atomic_output(out / rel) as tmp:
@@ -234,22 +246,28 @@ def simulate(
         frames.append(frame)
         bar.update()
     bar.close()
-    spec = TraverseSpec.model_validate({
-        "schema_version": "1.0",
-        "name": f"sim-{course}-seed{seed}",
-        "crs": {"code": "local", "origin": {"lat": 40.3515, "lon": 18.1750, "alt": 50.0}},
-        "calibration": calib.model_dump() if calib is not None else None,
-        "height_field": TRUTH_FILE,
-        "metadata": {
-            "simulator": {
-                "course": course, "seed": seed, "speed_m_s": speed, "rate_hz": rate,
-                "world_spacing_m": world_spacing, "sensor": sensor.__dict__,
+    spec = TraverseSpec.model_validate(
+        {
+            "schema_version": "1.0",
+            "name": f"sim-{course}-seed{seed}",
+            "crs": {"code": "local", "origin": {"lat": 40.3515, "lon": 18.1750, "alt": 50.0}},
+            "calibration": calib.model_dump() if calib is not None else None,
+            "height_field": TRUTH_FILE,
+            "metadata": {
+                "simulator": {
+                    "course": course,
+                    "seed": seed,
+                    "speed_m_s": speed,
+                    "rate_hz": rate,
+                    "world_spacing_m": world_spacing,
+                    "sensor": sensor.__dict__,
+                },
+                "segments": [s.__dict__ for s in segments],
+                "defects": [d.__dict__ for d in defects],
             },
-            "segments": [s.__dict__ for s in segments],
-            "defects": [d.__dict__ for d in defects],
-        },
-        "frames": frames,
-    })
+            "frames": frames,
+        }
+    )
     path = save_traverse(spec, out)
     log.info("wrote %d frames of the %s course to %s", len(frames), course, out)
     json.dumps(spec.metadata)  # the metadata must stay JSON

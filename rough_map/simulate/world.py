@@ -183,7 +183,9 @@ def build_world(
     for d in defects:
         add = terrain.DEFECTS.get(d.kind)
         if add is None:
-            raise InputError(f"unknown defect {d.kind!r}; expected one of {sorted(terrain.DEFECTS)}")
+            raise InputError(
+                f"unknown defect {d.kind!r}; expected one of {sorted(terrain.DEFECTS)}"
+            )
         j = int((d.x - x0) / spacing)
         i = int((d.y - origin[1]) / spacing)
         half = int(0.6 / spacing)
@@ -197,13 +199,15 @@ def build_world(
     return HeightField(heights, spacing, origin, classes, CLASS_NAMES)
 
 
-def _envelope(shape: tuple[int, int], spacing: float, length: float,
-              rng: np.random.Generator) -> np.ndarray:
+def _envelope(
+    shape: tuple[int, int], spacing: float, length: float, rng: np.random.Generator
+) -> np.ndarray:
     """Unit-variance smooth Gaussian field (correlation length ``length`` m)."""
     step = max(1, int(length / 8 / spacing))
     coarse_shape = (shape[0] // step + 3, shape[1] // step + 3)
-    g = ndimage.gaussian_filter(rng.standard_normal(coarse_shape), length / (step * spacing),
-                                mode="wrap")
+    g = ndimage.gaussian_filter(
+        rng.standard_normal(coarse_shape), length / (step * spacing), mode="wrap"
+    )
     g /= g.std() or 1.0
     rows = np.arange(shape[0]) / step
     cols = np.arange(shape[1]) / step
@@ -251,13 +255,16 @@ def drive(
     y = lateral_wander * np.sin(2 * np.pi * x / rng.uniform(15, 30) + phase)
     yaw = np.arctan(np.gradient(y, x)) if n > 1 else np.zeros(n)
     sigma = max(1.0, rover.wheel_radius / 2 / world.spacing)
-    smooth = HeightField(ndimage.gaussian_filter(world.heights, sigma), world.spacing,
-                         world.origin)
+    smooth = HeightField(ndimage.gaussian_filter(world.heights, sigma), world.spacing, world.origin)
     c, s = np.cos(yaw), np.sin(yaw)
     hw, ht = rover.wheelbase / 2, rover.track / 2
     wheels = {}
-    for name, (dx, dy) in {"fl": (hw, ht), "fr": (hw, -ht), "rl": (-hw, ht),
-                           "rr": (-hw, -ht)}.items():
+    for name, (dx, dy) in {
+        "fl": (hw, ht),
+        "fr": (hw, -ht),
+        "rl": (-hw, ht),
+        "rr": (-hw, -ht),
+    }.items():
         wheels[name] = smooth.sample(x + c * dx - s * dy, y + s * dx + c * dy)
     front = 0.5 * (wheels["fl"] + wheels["fr"])
     rear = 0.5 * (wheels["rl"] + wheels["rr"])
