@@ -1,9 +1,21 @@
-"""``rough-map demo``: the whole story on embedded default data."""
+"""``rough-map demo``: the whole story on embedded default data.
+
+1. The estimator on seeded synthetic patches of every ISO class and named surface.
+2. A simulated rover traverse over the paper's mixed course (concrete with a manhole, dirt
+   road, gravel): range clouds, stereo images of an XB3-like rig, IMU, true labels.
+3. Stereo -> point clouds -> features, compared with the range-sensor features.
+4. Features along the path, the default terrain model, the Bayesian path filter.
+5. The grid map with near-to-far from the RGB images; GeoTIFF, PNGs, the paper's figures,
+   the confusion matrix, and an index.html.
+"""
 
 from __future__ import annotations
 
 import argparse
 import math
+import sys
+import time
+from pathlib import Path
 
 import numpy as np
 
@@ -13,65 +25,170 @@ from rough_map.cli._common import table
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "demo",
-        help="run rough_map on built-in synthetic terrain and print what it finds",
-        description="Generate seeded synthetic terrain of every ISO 8608 class and every "
-        "named surface, estimate R and w, and print them next to the truth.",
+        help="run the whole chain on built-in simulated data and say where the outputs are",
+        description=__doc__.split("\n\n", 1)[1] if __doc__ else None,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    p.add_argument("--out", type=Path, default=Path("rough_map_demo"), metavar="DIR",
+                   help="output folder (default ./rough_map_demo; replaced if it holds a "
+                        "previous demo)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--patches", type=int, default=10, help="patches per surface (default 10)")
+    p.add_argument("--length", type=float, default=12.0, metavar="M",
+                   help="length of the simulated mixed course in m (default 12)")
+    p.add_argument("--image-every", type=int, default=4, metavar="N",
+                   help="render the stereo pair of every N-th frame (default 4)")
+    p.add_argument("--quick", action="store_true",
+                   help="only part 1: the estimator on synthetic patches")
     p.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
+def _say(msg: str) -> None:
+    print(msg, flush=True)
+
+
+def synthetic_table(seed: int, patches: int = 10) -> str:
+    """Part 1: R and w of synthetic patches next to the truth."""
     from rough_map import iso8608, terrain
     from rough_map.patch import DEFAULT_SPACING as B
     from rough_map.psd import patch_roughness
 
     n = 112
-    rng = np.random.default_rng(args.seed)
+    rng = np.random.default_rng(seed)
     rows = []
 
     def estimate(make):
-        stack = np.stack([make(rng) for _ in range(args.patches)])
-        est = patch_roughness(stack, B)
-        return (
-            math.exp(np.mean([math.log(e.R) for e in est])),
-            float(np.mean([e.w for e in est])),
-            float(np.mean([e.rms for e in est])),
-        )
+        est = patch_roughness(np.stack([make(rng) for _ in range(patches)]), B)
+        return (math.exp(np.mean([math.log(e.R) for e in est])),
+                float(np.mean([e.w for e in est])), float(np.mean([e.rms for e in est])))
 
-    print(
-        "rough_map demo: PSD roughness of synthetic terrain "
-        f"({args.patches} patches of {n * B:.3f} m at {B * 1e3:g} mm each, seed {args.seed})"
-    )
-    print()
     for cls in iso8608.CLASSES:
-        R, w, rms = estimate(
-            lambda g, c=cls: iso8608.synthesize_surface((4 * n, 4 * n), B, c, -2.0, seed=g)[:n, :n]
-        )
-        rows.append(
-            [
-                f"ISO {cls}",
-                f"{iso8608.PHI0[cls]:.2e}",
-                "-2.00",
-                f"{R:.2e}",
-                f"{w:.2f}",
-                f"{rms * 1e3:.2f}",
-                str(iso8608.iso_class(R)),
-            ]
-        )
+        R, w, rms = estimate(lambda g, c=cls: iso8608.synthesize_surface(
+            (4 * n, 4 * n), B, c, -2.0, seed=g)[:n, :n])
+        rows.append([f"ISO {cls}", f"{iso8608.PHI0[cls]:.2e}", "-2.00", f"{R:.2e}", f"{w:.2f}",
+                     f"{rms * 1e3:.2f}", str(iso8608.iso_class(R))])
     for name, spec in terrain.SURFACES.items():
-        R, w, rms = estimate(lambda g, nm=name: terrain.generate(nm, (n, 4 * n), B, seed=g)[:, :n])
-        rows.append(
-            [
-                name,
-                f"{spec.R:.2e}",
-                f"{spec.w:.2f}",
-                f"{R:.2e}",
-                f"{w:.2f}",
-                f"{rms * 1e3:.2f}",
-                str(iso8608.iso_class(R)),
-            ]
-        )
-    print(table(rows, ["surface", "true R", "true w", "R m^3/rad", "w", "rms mm", "ISO"]))
+        R, w, rms = estimate(lambda g, nm=name: terrain.generate(nm, (n, 4 * n), B, seed=g)[
+            :, :n])
+        rows.append([name, f"{spec.R:.2e}", f"{spec.w:.2f}", f"{R:.2e}", f"{w:.2f}",
+                     f"{rms * 1e3:.2f}", str(iso8608.iso_class(R))])
+    return table(rows, ["surface", "true R", "true w", "R m^3/rad", "w", "rms mm", "ISO"])
+
+
+def run(args: argparse.Namespace) -> int:
+    t0 = time.perf_counter()
+    _say("== 1. The PSD estimator on synthetic terrain "
+         "(10 patches of 0.896 m at 8 mm per surface) ==")
+    _say(synthetic_table(args.seed))
+    if args.quick:
+        return 0
+    return _whole_story(args, t0)
+
+
+def _whole_story(args: argparse.Namespace, t0: float) -> int:
+    import shutil
+
+    from rough_map.classify import evaluate_model
+    from rough_map.cli.map import default_model
+    from rough_map.export import export_map
+    from rough_map.export.report import write_report
+    from rough_map.io.traverse import load_traverse
+    from rough_map.simulate.course import simulate
+    from rough_map.workflow import analyse, level_edges, map_accuracy, write_tables
+
+    out: Path = args.out
+    if out.exists():
+        if not (out / "DEMO").is_file():
+            _say(f"rough-map demo: {out} exists and is not a previous demo; use --out")
+            return 2
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    (out / "DEMO").write_text("written by rough-map demo; safe to delete\n")
+    trav_dir = out / "traverse"
+    _say(f"\n== 2. Simulating the mixed course ({args.length:g} m: concrete with a manhole, "
+         f"dirt road, gravel) ==")
+    simulate(trav_dir, "mixed", length=args.length, seed=args.seed, images=True,
+             image_every=args.image_every, progress=args.progress)
+    trav = load_traverse(trav_dir)
+    n_img = sum(f.left is not None for f in trav.frames)
+    _say(f"{len(trav)} frames at 2 Hz, 0.5 m/s; {n_img} stereo pairs (1280x960) -> {trav_dir}")
+
+    _say("\n== 3. Stereo (SGBM on the patch rows) -> point cloud -> R, w; against the range "
+         "sensor ==")
+    _say(_stereo_check(trav))
+
+    _say("\n== 4. Features, terrain model and Bayesian path filter; 5. map, near-to-far ==")
+    model = default_model()
+    result = analyse(trav, model, near_far="auto", progress=args.progress)
+    f = result.features
+    pred = result.prediction
+    rows = []
+    for lab in dict.fromkeys(f["label"]):
+        sel = f.valid & (f["label"] == lab)
+        if sel.any():
+            r = math.exp(float(np.mean(np.log(f["R"][sel]))))
+            from rough_map.iso8608 import iso_class
+
+            rows.append([lab, str(int(sel.sum())), f"{r:.2e}", str(iso_class(r)),
+                         f"{np.mean(f['w'][sel]):.2f}",
+                         f"{np.mean(pred.raw_class[sel] == lab):.2f}",
+                         f"{np.mean(pred.filtered_class[sel] == lab):.2f}"])
+    _say(table(rows, ["true class", "frames", "R m^3/rad", "ISO", "w", "raw acc",
+                      "filtered acc"]))
+    evaluation = evaluate_model(result.model, [f])
+    _say(f"macro-F1 raw {evaluation['raw']['macro_f1']:.3f}, filtered "
+         f"{evaluation['filtered']['macro_f1']:.3f}; accuracy raw "
+         f"{evaluation['raw']['accuracy']:.3f}, filtered {evaluation['filtered']['accuracy']:.3f}")
+    from rough_map.simulate.course import load_world
+
+    world = load_world(trav_dir / "world_truth.npz")
+    _say(f"map: {result.map.shape[1]} x {result.map.shape[0]} cells of 0.1 m; class accuracy "
+         f"{map_accuracy(result.map, world):.3f} over the near-field cells")
+    if result.far_report:
+        r = result.far_report
+        acc = ""
+        if "far_class" in result.map.layers:
+            acc = f", far-field class accuracy {map_accuracy(result.map, world, 'far_class'):.3f}"
+        _say(f"near-to-far: {r['near_area_m2']:.1f} m^2 seen by geometry, "
+             f"{r['near_far_area_m2']:.1f} m^2 with appearance (x{r['area_ratio']:.1f}){acc}")
+
+    _say("\n== 6. Outputs ==")
+    paths = export_map(result.map, out, name="map", png=True)
+    paths.update(write_tables(result, out))
+    paths.update(write_report(result, out, evaluation=evaluation,
+                              level_edges=level_edges(result)))
+    rows = [[k, str(v)] for k, v in paths.items()]
+    _say(table(rows, ["output", "path"]))
+    _say(f"\nOpen {paths['index']} in a browser. Done in {time.perf_counter() - t0:.0f} s.")
+    print(f"demo outputs in {out}", file=sys.stderr)
     return 0
+
+
+def _stereo_check(trav) -> str:
+    """Features of the stereo clouds against those of the range clouds, per frame pair."""
+    from rough_map.io.stereo import StereoCalibration, read_image, stereo_to_cloud
+    from rough_map.pipeline import frame_features
+    from rough_map.patch import PatchSpec
+
+    calib = StereoCalibration.model_validate(trav.spec.calibration.model_dump())
+    spec = PatchSpec()
+    rows = []
+    times = []
+    for i, fr in enumerate(trav.frames):
+        if fr.left is None:
+            continue
+        left, right = read_image(trav.resolve(fr.left)), read_image(trav.resolve(fr.right))
+        t = time.perf_counter()
+        cloud = stereo_to_cloud(left, right, calib)
+        times.append(time.perf_counter() - t)
+        imu = (fr.imu.roll, fr.imu.pitch) if fr.imu is not None else (None, None)
+        st, _, _ = frame_features(cloud, spec, roll=imu[0], pitch=imu[1])
+        rg, _, _ = frame_features(trav.load_cloud(i), spec, roll=imu[0], pitch=imu[1])
+        if st["valid"] and rg["valid"]:
+            rows.append([str(i), fr.label or "", f"{len(cloud):,}", f"{rg['R']:.2e}",
+                         f"{st['R']:.2e}", f"{rg['w']:.2f}", f"{st['w']:.2f}"])
+        else:
+            rows.append([str(i), fr.label or "", f"{len(cloud):,}", "", "", "", "",
+                         ][:7])
+    head = ["frame", "label", "stereo points", "R range", "R stereo", "w range", "w stereo"]
+    ms = 1e3 * float(np.median(times)) if times else math.nan
+    return table(rows, head) + f"\nstereo: {ms:.0f} ms per pair (median)"
