@@ -29,16 +29,31 @@ def register(sub: argparse._SubParsersAction) -> None:
         description=__doc__.split("\n\n", 1)[1] if __doc__ else None,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--out", type=Path, default=Path("rough_map_demo"), metavar="DIR",
-                   help="output folder (default ./rough_map_demo; replaced if it holds a "
-                        "previous demo)")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=Path("rough_map_demo"),
+        metavar="DIR",
+        help="output folder (default ./rough_map_demo; replaced if it holds a previous demo)",
+    )
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--length", type=float, default=12.0, metavar="M",
-                   help="length of the simulated mixed course in m (default 12)")
-    p.add_argument("--image-every", type=int, default=4, metavar="N",
-                   help="render the stereo pair of every N-th frame (default 4)")
-    p.add_argument("--quick", action="store_true",
-                   help="only part 1: the estimator on synthetic patches")
+    p.add_argument(
+        "--length",
+        type=float,
+        default=12.0,
+        metavar="M",
+        help="length of the simulated mixed course in m (default 12)",
+    )
+    p.add_argument(
+        "--image-every",
+        type=int,
+        default=4,
+        metavar="N",
+        help="render the stereo pair of every N-th frame (default 4)",
+    )
+    p.add_argument(
+        "--quick", action="store_true", help="only part 1: the estimator on synthetic patches"
+    )
     p.set_defaults(func=run)
 
 
@@ -58,26 +73,49 @@ def synthetic_table(seed: int, patches: int = 10) -> str:
 
     def estimate(make):
         est = patch_roughness(np.stack([make(rng) for _ in range(patches)]), B)
-        return (math.exp(np.mean([math.log(e.R) for e in est])),
-                float(np.mean([e.w for e in est])), float(np.mean([e.rms for e in est])))
+        return (
+            math.exp(np.mean([math.log(e.R) for e in est])),
+            float(np.mean([e.w for e in est])),
+            float(np.mean([e.rms for e in est])),
+        )
 
     for cls in iso8608.CLASSES:
-        R, w, rms = estimate(lambda g, c=cls: iso8608.synthesize_surface(
-            (4 * n, 4 * n), B, c, -2.0, seed=g)[:n, :n])
-        rows.append([f"ISO {cls}", f"{iso8608.PHI0[cls]:.2e}", "-2.00", f"{R:.2e}", f"{w:.2f}",
-                     f"{rms * 1e3:.2f}", str(iso8608.iso_class(R))])
+        R, w, rms = estimate(
+            lambda g, c=cls: iso8608.synthesize_surface((4 * n, 4 * n), B, c, -2.0, seed=g)[:n, :n]
+        )
+        rows.append(
+            [
+                f"ISO {cls}",
+                f"{iso8608.PHI0[cls]:.2e}",
+                "-2.00",
+                f"{R:.2e}",
+                f"{w:.2f}",
+                f"{rms * 1e3:.2f}",
+                str(iso8608.iso_class(R)),
+            ]
+        )
     for name, spec in terrain.SURFACES.items():
-        R, w, rms = estimate(lambda g, nm=name: terrain.generate(nm, (n, 4 * n), B, seed=g)[
-            :, :n])
-        rows.append([name, f"{spec.R:.2e}", f"{spec.w:.2f}", f"{R:.2e}", f"{w:.2f}",
-                     f"{rms * 1e3:.2f}", str(iso8608.iso_class(R))])
+        R, w, rms = estimate(lambda g, nm=name: terrain.generate(nm, (n, 4 * n), B, seed=g)[:, :n])
+        rows.append(
+            [
+                name,
+                f"{spec.R:.2e}",
+                f"{spec.w:.2f}",
+                f"{R:.2e}",
+                f"{w:.2f}",
+                f"{rms * 1e3:.2f}",
+                str(iso8608.iso_class(R)),
+            ]
+        )
     return table(rows, ["surface", "true R", "true w", "R m^3/rad", "w", "rms mm", "ISO"])
 
 
 def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
-    _say("== 1. The PSD estimator on synthetic terrain "
-         "(10 patches of 0.896 m at 8 mm per surface) ==")
+    _say(
+        "== 1. The PSD estimator on synthetic terrain "
+        "(10 patches of 0.896 m at 8 mm per surface) =="
+    )
     _say(synthetic_table(args.seed))
     if args.quick:
         return 0
@@ -104,16 +142,27 @@ def _whole_story(args: argparse.Namespace, t0: float) -> int:
     out.mkdir(parents=True)
     (out / "DEMO").write_text("written by rough-map demo; safe to delete\n")
     trav_dir = out / "traverse"
-    _say(f"\n== 2. Simulating the mixed course ({args.length:g} m: concrete with a manhole, "
-         f"dirt road, gravel) ==")
-    simulate(trav_dir, "mixed", length=args.length, seed=args.seed, images=True,
-             image_every=args.image_every, progress=args.progress)
+    _say(
+        f"\n== 2. Simulating the mixed course ({args.length:g} m: concrete with a manhole, "
+        f"dirt road, gravel) =="
+    )
+    simulate(
+        trav_dir,
+        "mixed",
+        length=args.length,
+        seed=args.seed,
+        images=True,
+        image_every=args.image_every,
+        progress=args.progress,
+    )
     trav = load_traverse(trav_dir)
     n_img = sum(f.left is not None for f in trav.frames)
     _say(f"{len(trav)} frames at 2 Hz, 0.5 m/s; {n_img} stereo pairs (1280x960) -> {trav_dir}")
 
-    _say("\n== 3. Stereo (SGBM on the patch rows) -> point cloud -> R, w; against the range "
-         "sensor ==")
+    _say(
+        "\n== 3. Stereo (SGBM on the patch rows) -> point cloud -> R, w; against the range "
+        "sensor =="
+    )
     _say(_stereo_check(trav))
 
     _say("\n== 4. Features, terrain model and Bayesian path filter; 5. map, near-to-far ==")
@@ -128,34 +177,45 @@ def _whole_story(args: argparse.Namespace, t0: float) -> int:
             r = math.exp(float(np.mean(np.log(f["R"][sel]))))
             from rough_map.iso8608 import iso_class
 
-            rows.append([lab, str(int(sel.sum())), f"{r:.2e}", str(iso_class(r)),
-                         f"{np.mean(f['w'][sel]):.2f}",
-                         f"{np.mean(pred.raw_class[sel] == lab):.2f}",
-                         f"{np.mean(pred.filtered_class[sel] == lab):.2f}"])
-    _say(table(rows, ["true class", "frames", "R m^3/rad", "ISO", "w", "raw acc",
-                      "filtered acc"]))
+            rows.append(
+                [
+                    lab,
+                    str(int(sel.sum())),
+                    f"{r:.2e}",
+                    str(iso_class(r)),
+                    f"{np.mean(f['w'][sel]):.2f}",
+                    f"{np.mean(pred.raw_class[sel] == lab):.2f}",
+                    f"{np.mean(pred.filtered_class[sel] == lab):.2f}",
+                ]
+            )
+    _say(table(rows, ["true class", "frames", "R m^3/rad", "ISO", "w", "raw acc", "filtered acc"]))
     evaluation = evaluate_model(result.model, [f])
-    _say(f"macro-F1 raw {evaluation['raw']['macro_f1']:.3f}, filtered "
-         f"{evaluation['filtered']['macro_f1']:.3f}; accuracy raw "
-         f"{evaluation['raw']['accuracy']:.3f}, filtered {evaluation['filtered']['accuracy']:.3f}")
+    _say(
+        f"macro-F1 raw {evaluation['raw']['macro_f1']:.3f}, filtered "
+        f"{evaluation['filtered']['macro_f1']:.3f}; accuracy raw "
+        f"{evaluation['raw']['accuracy']:.3f}, filtered {evaluation['filtered']['accuracy']:.3f}"
+    )
     from rough_map.simulate.course import load_world
 
     world = load_world(trav_dir / "world_truth.npz")
-    _say(f"map: {result.map.shape[1]} x {result.map.shape[0]} cells of 0.1 m; class accuracy "
-         f"{map_accuracy(result.map, world):.3f} over the near-field cells")
+    _say(
+        f"map: {result.map.shape[1]} x {result.map.shape[0]} cells of 0.1 m; class accuracy "
+        f"{map_accuracy(result.map, world):.3f} over the near-field cells"
+    )
     if result.far_report:
         r = result.far_report
         acc = ""
         if "far_class" in result.map.layers:
             acc = f", far-field class accuracy {map_accuracy(result.map, world, 'far_class'):.3f}"
-        _say(f"near-to-far: {r['near_area_m2']:.1f} m^2 seen by geometry, "
-             f"{r['near_far_area_m2']:.1f} m^2 with appearance (x{r['area_ratio']:.1f}){acc}")
+        _say(
+            f"near-to-far: {r['near_area_m2']:.1f} m^2 seen by geometry, "
+            f"{r['near_far_area_m2']:.1f} m^2 with appearance (x{r['area_ratio']:.1f}){acc}"
+        )
 
     _say("\n== 6. Outputs ==")
     paths = export_map(result.map, out, name="map", png=True)
     paths.update(write_tables(result, out))
-    paths.update(write_report(result, out, evaluation=evaluation,
-                              level_edges=level_edges(result)))
+    paths.update(write_report(result, out, evaluation=evaluation, level_edges=level_edges(result)))
     rows = [[k, str(v)] for k, v in paths.items()]
     _say(table(rows, ["output", "path"]))
     _say(f"\nOpen {paths['index']} in a browser. Done in {time.perf_counter() - t0:.0f} s.")
@@ -166,8 +226,8 @@ def _whole_story(args: argparse.Namespace, t0: float) -> int:
 def _stereo_check(trav) -> str:
     """Features of the stereo clouds against those of the range clouds, per frame pair."""
     from rough_map.io.stereo import StereoCalibration, read_image, stereo_to_cloud
-    from rough_map.pipeline import frame_features
     from rough_map.patch import PatchSpec
+    from rough_map.pipeline import frame_features
 
     calib = StereoCalibration.model_validate(trav.spec.calibration.model_dump())
     spec = PatchSpec()
@@ -184,11 +244,29 @@ def _stereo_check(trav) -> str:
         st, _, _ = frame_features(cloud, spec, roll=imu[0], pitch=imu[1])
         rg, _, _ = frame_features(trav.load_cloud(i), spec, roll=imu[0], pitch=imu[1])
         if st["valid"] and rg["valid"]:
-            rows.append([str(i), fr.label or "", f"{len(cloud):,}", f"{rg['R']:.2e}",
-                         f"{st['R']:.2e}", f"{rg['w']:.2f}", f"{st['w']:.2f}"])
+            rows.append(
+                [
+                    str(i),
+                    fr.label or "",
+                    f"{len(cloud):,}",
+                    f"{rg['R']:.2e}",
+                    f"{st['R']:.2e}",
+                    f"{rg['w']:.2f}",
+                    f"{st['w']:.2f}",
+                ]
+            )
         else:
-            rows.append([str(i), fr.label or "", f"{len(cloud):,}", "", "", "", "",
-                         ][:7])
+            rows.append(
+                [
+                    str(i),
+                    fr.label or "",
+                    f"{len(cloud):,}",
+                    "",
+                    "",
+                    "",
+                    "",
+                ][:7]
+            )
     head = ["frame", "label", "stereo points", "R range", "R stereo", "w range", "w stereo"]
     ms = 1e3 * float(np.median(times)) if times else math.nan
     return table(rows, head) + f"\nstereo: {ms:.0f} ms per pair (median)"

@@ -88,6 +88,7 @@ __all__ = [
     "AccuracyTable",
     "Coverage",
     "FarPrediction",
+    "Looks",
     "NearToFar",
     "area_coverage",
     "far_field_accuracy",
@@ -114,7 +115,7 @@ _STD_FLOOR = 0.05
 #: :data:`FEATURE_NAMES`). Measured on rendered terrain, a class's far-field tile means stay
 #: within about 0.5 L*, 0.05 a* and 0.1 b* of its near-field means, and its log-stds drift
 #: by up to 0.4 (L*, fine texture fading with distance) and 0.08 (a*, b*).
-DEFAULT_MIN_STD: tuple[float, ...] = (1.0, 0.1, 0.2, 0.1, 0.05, 0.05)
+DEFAULT_MIN_STD: tuple[float, ...] = (1.0, 0.1, 0.2, 0.25, 0.15, 0.15)
 #: Accuracy-table bin edges (m of distance from the vehicle).
 DEFAULT_BINS = (1.5, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0)
 
@@ -342,6 +343,10 @@ class FarPrediction:
         Time of the frame, s.
     frame : int or None
         Index of the frame in its traverse.
+    recalled : ndarray of bool, shape (N,)
+        Cells predicted from their look in an earlier image (:class:`NearToFar` ``recall``);
+        their ``ahead``, ``lateral`` and ``distance`` are those of that sighting. All false
+        by default.
     """
 
     x: NDArray[np.float64]
@@ -353,6 +358,21 @@ class FarPrediction:
     classes: tuple[str, ...]
     t: float | None = None
     frame: int | None = None
+    recalled: NDArray[np.bool_] | None = None
+
+    def __post_init__(self) -> None:
+        n = np.shape(self.x)
+        for name in ("y", "ahead", "lateral", "distance"):
+            if np.shape(getattr(self, name)) != n:
+                raise InputError(f"FarPrediction.{name} must have shape {n} like x")
+        if np.shape(self.proba) != (*n, len(self.classes)):
+            raise InputError(
+                f"FarPrediction.proba must have shape {(*n, len(self.classes))} (cells, classes)"
+            )
+        if self.recalled is None:
+            object.__setattr__(self, "recalled", np.zeros(n, dtype=bool))
+        elif np.shape(self.recalled) != n:
+            raise InputError(f"FarPrediction.recalled must have shape {n} like x")
 
     def __len__(self) -> int:
         return int(self.x.size)
@@ -387,6 +407,7 @@ class FarPrediction:
             self.classes,
             self.t,
             self.frame,
+            self.recalled[m],  # type: ignore[index]
         )
 
 
@@ -426,15 +447,26 @@ class NearToFar:
     min_std : sequence of 6 float
         Lowest standard deviation of each feature within a class (units of
         :data:`FEATURE_NAMES`), see :data:`DEFAULT_MIN_STD`.
+    recall : bool
+        Remember the appearance of the cells that were unfamiliar when seen (at their
+        closest sighting) and predict them, once, as soon as an update makes them familiar:
+        terrain of a new class is mostly seen far ahead before the rover drives onto it and
+        learns it. Only images and labels up to the current frame are used.
+    memory_cells : int
+        Most cells remembered for ``recall`` (the oldest are forgotten first; cells more
+        than ``2 * max_range`` from the vehicle are forgotten too).
+    min_support : float
+        Updates (frames, weighted by the label's probability) a look needs before it is
+        used: a look learnt once may be a wrong geometric label.
+    max_looks : int
+        Most looks kept per class; the least supported goes first.
 
     Attributes
     ----------
-    model_ : sklearn.naive_bayes.GaussianNB
-        The running class-conditional Gaussians (after the first :meth:`update`).
+    looks_ : Looks
+        The learnt looks (after the first :meth:`update`).
     n_updates_ : int
         Number of updates made.
-    seen_ : ndarray of bool, shape (K,)
-        Classes learnt so far.
     """
 
     def __init__(
@@ -450,6 +482,10 @@ class NearToFar:
         outlier_k: float = 4.0,
         min_near_tiles: int = 8,
         min_std: Sequence[float] = DEFAULT_MIN_STD,
+        recall: bool = True,
+        memory_cells: int = 50_000,
+        min_support: float = 2.0,
+        max_looks: int = 8,
     ) -> None:
         self.classes = tuple(str(c) for c in classes)
         self.tile_px = int(tile_px)
@@ -463,6 +499,10 @@ class NearToFar:
         self.outlier_k = float(outlier_k)
         self.min_near_tiles = int(min_near_tiles)
         self.min_std = tuple(float(v) for v in min_std)
+        self.recall = bool(recall)
+        self.memory_cells = int(memory_cells)
+        self.min_support = float(min_support)
+        self.max_looks = int(max_looks)
         self._check_params()
         self._min_var = np.square(np.asarray(self.min_std))[None, :]
         self._geometry_key: tuple[str, int] | None = None
@@ -493,6 +533,8 @@ class NearToFar:
             )
         if not 0.0 <= self.novelty_alpha < 1.0:
             raise InputError(f"novelty_alpha must be in [0, 1), got {self.novelty_alpha}")
+        if self.max_looks < 1:
+            raise InputError(f"max_looks must be at least 1, got {self.max_looks}")
 
     # ------------------------------------------------------------------------------ helpers
 
@@ -571,8 +613,6 @@ class NearToFar:
         InputError
             Wrong image size or type, an unknown class label, or a near field not in view.
         """
-        from sklearn.naive_bayes import GaussianNB
-
         image = _check_image(image_bgr, calib)
         pose_matrix(pose)
         target = self._target(near_label)
@@ -584,73 +624,94 @@ class NearToFar:
                 f"{self.near} m ahead; check the calibration or use smaller tiles"
             )
         features = tile_features(image, self.tile_px)[near]
-        keep = _inliers(features, self.outlier_k)
-        if hasattr(self, "model_"):
-            # Tiles that look like another class already learnt are that class, not the
-            # label's: the patch straddles a class boundary or the geometric label is wrong.
-            nearest, tail = self._nearest_class(features)
-            keep &= (nearest == np.argmax(target)) | (tail < self.novelty_alpha)
-        if not keep.any():
-            log.debug("near-to-far update skipped: no near tile fits the label")
-            return self
-        features = features[keep]
-        classes = np.flatnonzero(target > 1e-3)
-        x = np.repeat(features, classes.size, axis=0)
-        y = np.tile(classes, len(features))
-        weight = np.tile(target[classes], len(features))
-        if not hasattr(self, "model_"):
-            self.model_ = GaussianNB(var_smoothing=1e-9)
-            self.model_.partial_fit(
-                x, y, classes=np.arange(len(self.classes)), sample_weight=weight
-            )
+        features = _main_look(features[_inliers(features, self.outlier_k)], self._min_var)
+        if not hasattr(self, "looks_"):
+            self.looks_ = Looks.empty(len(FEATURE_NAMES))
             self.n_updates_ = 0
-            self.seen_ = np.zeros(len(self.classes), dtype=bool)
-        else:
-            self.model_.partial_fit(x, y, sample_weight=weight)
+            self._memory: dict[tuple[int, int], tuple[float, NDArray[np.float64]]] = {}
+            self._recall_checked = 0
+        for c in np.flatnonzero(target > 1e-3):
+            self._learn(int(c), features, float(target[c]))
         self.n_updates_ += 1
-        self.seen_[classes] = True
         log.debug(
-            "near-to-far update %d: %d/%d near tiles, classes %s",
+            "near-to-far update %d: %d near tiles of %d learnt as %s; %d looks",
             self.n_updates_,
-            int(keep.sum()),
-            keep.size,
-            [self.classes[c] for c in classes],
+            len(features),
+            int(near.sum()),
+            {self.classes[c]: round(float(target[c]), 3) for c in np.flatnonzero(target)},
+            len(self.looks_.cls),
         )
         return self
 
+    def _learn(self, c: int, x: NDArray[np.float64], weight: float) -> None:
+        """Merge a batch of tiles (weight per tile) into the nearest familiar look of class
+        ``c``, or start a new look."""
+        from scipy.stats import chi2
+
+        looks = self.looks_
+        n = weight * len(x)
+        mean = x.mean(axis=0)
+        m2 = weight * ((x - mean) ** 2).sum(axis=0)
+        mine = np.flatnonzero(looks.cls == c)
+        if len(mine):
+            var = np.maximum(looks.var[mine], self._min_var)
+            d2 = (((mean - looks.mean[mine]) ** 2) / var).sum(axis=1)
+            best = int(np.argmin(d2))
+            if chi2.sf(d2[best], df=x.shape[1]) >= max(self.novelty_alpha, 1e-12):
+                looks.merge(int(mine[best]), n, mean, m2, weight)
+                return
+        looks.add(c, n, mean, m2, weight)
+        if len(mine) + 1 > self.max_looks:
+            weakest = mine[np.argmin(looks.support[mine])]
+            looks.drop(int(weakest))
+
     # ------------------------------------------------------------------------------ prediction
+
+    @property
+    def seen_(self) -> NDArray[np.bool_]:
+        """Classes with at least one look in use (``min_support`` reached), shape (K,)."""
+        seen = np.zeros(len(self.classes), dtype=bool)
+        if hasattr(self, "looks_"):
+            seen[self.looks_.cls[self.looks_.support >= self.min_support]] = True
+        return seen
 
     def _distances(
         self, x: NDArray[np.float64]
     ) -> tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.float64]]:
-        """Learnt classes, squared Mahalanobis distances (N, S) and variances (S, F).
+        """Looks in use, squared Mahalanobis distances (N, L) and variances (L, F).
 
-        Each class's variances are floored at ``min_std ** 2``: a few frames of near field
+        Each look's variances are floored at ``min_std ** 2``: a few frames of near field
         underestimate how much a class varies elsewhere (shading with the viewing angle,
-        fine texture fading with distance), and an unfloored naive Bayes extrapolates wildly
-        between classes whose spreads differ a lot.
+        fine texture fading with distance), and Gaussians of very different spreads
+        extrapolate wildly between them.
         """
-        seen = np.flatnonzero(self.seen_)
-        var = np.maximum(self.model_.var_[seen], self._min_var)
-        d2 = (((x[:, None, :] - self.model_.theta_[seen][None]) ** 2) / var[None]).sum(axis=-1)
-        return seen, d2, var
+        looks = self.looks_
+        used = np.flatnonzero(looks.support >= self.min_support)
+        var = np.maximum(looks.var[used], self._min_var)
+        d2 = (((x[:, None, :] - looks.mean[used][None]) ** 2) / var[None]).sum(axis=-1)
+        return used, d2, var
 
     def _nearest_class(
         self, x: NDArray[np.float64]
     ) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
-        """Nearest learnt class of feature rows and the chi-square tail probability there."""
+        """Class of the nearest look in use of feature rows, and the chi-square tail
+        probability of the distance to it (-1 and 0 when no look is in use)."""
         from scipy.stats import chi2
 
-        seen, d2, _ = self._distances(x)
+        used, d2, _ = self._distances(x)
+        if not len(used):
+            return np.full(len(x), -1, dtype=np.intp), np.zeros(len(x))
         best = np.argmin(d2, axis=1)
-        return seen[best], chi2.sf(d2[np.arange(len(x)), best], df=x.shape[1])
+        tail = chi2.sf(d2[np.arange(len(x)), best], df=x.shape[1])
+        return self.looks_.cls[used][best], tail
 
     def predict_proba_features(self, features: ArrayLike) -> NDArray[np.float64]:
         """Class probabilities of feature rows (:func:`tile_features`).
 
-        Gaussian class likelihoods (variances floored at ``min_std ** 2``), equal priors over
-        the classes learnt so far and zero for the others; unfamiliar rows are pulled towards
-        uniform over all classes (see ``novelty_alpha``).
+        Each class's likelihood is the mixture of its looks in use, weighted by the number
+        of tiles each learnt (variances floored at ``min_std ** 2``); equal priors over the
+        classes with a look in use, zero for the others; unfamiliar rows are pulled towards
+        uniform over all classes (see ``novelty_alpha``). Uniform before any look is in use.
 
         Parameters
         ----------
@@ -670,15 +731,29 @@ class NearToFar:
         from scipy.special import logsumexp
         from scipy.stats import chi2
 
-        if not hasattr(self, "model_"):
+        if not hasattr(self, "looks_"):
             raise NotFittedError("NearToFar has learnt nothing yet: call update() first")
         x = np.asarray(features, dtype=float)
         if x.ndim != 2 or x.shape[1] != len(FEATURE_NAMES):
             raise InputError(f"features must have shape (N, {len(FEATURE_NAMES)}), got {x.shape}")
-        seen, d2, var = self._distances(x)
-        loglik = -0.5 * d2 - 0.5 * np.log(2.0 * np.pi * var).sum(axis=-1)[None]
-        post = np.zeros((len(x), len(self.classes)))
-        post[:, seen] = np.exp(loglik - logsumexp(loglik, axis=1, keepdims=True))
+        k = len(self.classes)
+        used, d2, var = self._distances(x)
+        if not len(used):
+            return np.full((len(x), k), 1.0 / k)
+        cls = self.looks_.cls[used]
+        n = self.looks_.n[used]
+        class_n = np.bincount(cls, weights=n, minlength=k)
+        loglik = (
+            np.log(n / class_n[cls])[None]
+            - 0.5 * d2
+            - 0.5 * np.log(2.0 * np.pi * var).sum(axis=-1)[None]
+        )
+        classes = np.unique(cls)
+        per_class = np.stack(
+            [logsumexp(loglik[:, cls == c], axis=1) for c in classes], axis=1
+        )  # (N, C)
+        post = np.zeros((len(x), k))
+        post[:, classes] = np.exp(per_class - logsumexp(per_class, axis=1, keepdims=True))
         if self.novelty_alpha > 0:
             tail = chi2.sf(d2.min(axis=1), df=x.shape[1])
             known = np.clip(tail / self.novelty_alpha, 0.0, 1.0)[:, None]
@@ -713,7 +788,8 @@ class NearToFar:
         -------
         FarPrediction
             Cells on the ``ground_step`` world lattice within ``max_range`` m, outside the
-            near field, seen by a tile whose ray meets the ground.
+            near field, seen by a tile whose ray meets the ground; with ``recall``, followed
+            by the remembered cells that became familiar (``recalled`` true).
 
         Raises
         ------
@@ -724,30 +800,95 @@ class NearToFar:
         """
         image = _check_image(image_bgr, calib)
         transform = pose_matrix(pose)
-        if not hasattr(self, "model_"):
+        if not hasattr(self, "looks_"):
             raise NotFittedError("NearToFar has learnt nothing yet: call update() first")
         geometry = self._tiles(calib)
-        n_tiles = geometry.n_rows * geometry.n_cols
         # Tiles whose centre is a little beyond max_range still cover cells within it.
-        reach = self.max_range + 1.0
         with np.errstate(invalid="ignore"):
-            usable = np.isfinite(geometry.distance) & (geometry.distance <= reach)
-        tile_proba = np.full((n_tiles, len(self.classes)), np.nan)
-        if usable.any():
-            features = tile_features(image, self.tile_px)[usable]
-            tile_proba[usable] = self.predict_proba_features(features)
-        cells = self._cells(calib, geometry, transform, usable, tile_proba)
-        ahead, lateral, wx, wy, proba = cells
+            usable = np.isfinite(geometry.distance) & (geometry.distance <= self.max_range + 1.0)
+        features = np.full((len(usable), len(FEATURE_NAMES)), np.nan)
+        features[usable] = tile_features(image, self.tile_px)[usable]
+        keys, ahead, lateral, wx, wy, cell_features = self._cells(
+            calib, geometry, transform, usable, features
+        )
+        proba, familiar = self._proba(cell_features)
+        cells = _Cells(keys, wx, wy, ahead, lateral, np.hypot(ahead, lateral), cell_features)
+        recalled = np.zeros(len(wx), dtype=bool)
+        if self.recall:
+            old = self._recall(cells, familiar, transform)
+            if len(old.x):
+                old_proba, _ = self._proba(old.features)
+                cells = _Cells.concat(cells, old)
+                proba = np.concatenate([proba, old_proba])
+                recalled = np.concatenate([recalled, np.ones(len(old.x), dtype=bool)])
         return FarPrediction(
-            x=wx,
-            y=wy,
-            ahead=ahead,
-            lateral=lateral,
-            distance=np.hypot(ahead, lateral),
+            x=cells.x,
+            y=cells.y,
+            ahead=cells.ahead,
+            lateral=cells.lateral,
+            distance=cells.distance,
             proba=proba,
             classes=self.classes,
             t=t,
             frame=frame,
+            recalled=recalled,
+        )
+
+    def _proba(
+        self, features: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        """Probabilities (N, K) and whether each row is familiar (N,)."""
+        if not len(features):
+            return np.zeros((0, len(self.classes))), np.zeros(0, dtype=bool)
+        proba = self.predict_proba_features(features)
+        if self.novelty_alpha == 0:
+            return proba, np.ones(len(features), dtype=bool)
+        _, tail = self._nearest_class(features)
+        return proba, tail >= self.novelty_alpha
+
+    def _recall(
+        self, cells: _Cells, familiar: NDArray[np.bool_], transform: NDArray[np.float64]
+    ) -> _Cells:
+        """Update the memory of unfamiliar cells; return those that are familiar now."""
+        memory = self._memory
+        for k, key in enumerate(map(tuple, cells.keys.tolist())):
+            if familiar[k]:
+                memory.pop(key, None)
+            elif key not in memory or memory[key][0] > cells.distance[k]:
+                memory[key] = (float(cells.distance[k]), cells.row(k))
+        # Forget cells far behind, and the oldest beyond the cap.
+        here = transform[:2, 3]
+        stale = [
+            key
+            for key, (_, row) in memory.items()
+            if math.hypot(row[0] - here[0], row[1] - here[1]) > 2.0 * self.max_range
+        ]
+        for key in stale:
+            del memory[key]
+        while len(memory) > self.memory_cells:
+            del memory[next(iter(memory))]
+        if self._recall_checked == self.n_updates_ or not memory:
+            return _Cells.empty(len(FEATURE_NAMES))
+        self._recall_checked = self.n_updates_
+        in_view = set(map(tuple, cells.keys.tolist()))
+        candidates = [key for key in memory if key not in in_view]
+        if not candidates:
+            return _Cells.empty(len(FEATURE_NAMES))
+        rows = np.array([memory[key][1] for key in candidates])
+        _, now_familiar = self._proba(rows[:, 5:])
+        out = [key for key, ok in zip(candidates, now_familiar, strict=True) if ok]
+        for key in out:
+            del memory[key]
+        rows = rows[now_familiar]
+        log.debug("near-to-far recall: %d cells became familiar", len(out))
+        return _Cells(
+            np.array(out, dtype=np.int64).reshape(-1, 2),
+            rows[:, 0],
+            rows[:, 1],
+            rows[:, 2],
+            rows[:, 3],
+            rows[:, 4],
+            rows[:, 5:],
         )
 
     def _cells(
@@ -756,9 +897,13 @@ class NearToFar:
         geometry: _TileGeometry,
         transform: NDArray[np.float64],
         usable: NDArray[np.bool_],
-        tile_proba: NDArray[np.float64],
-    ) -> tuple[NDArray[np.float64], ...]:
-        """Ground cells in view and their probabilities (see the module notes, step 5)."""
+        features: NDArray[np.float64],
+    ) -> tuple[NDArray[Any], ...]:
+        """Ground cells in view and their features (see the module notes, step 5).
+
+        Returns the cell keys (N, 2) (lattice indices along world x and y), vehicle-frame
+        ahead and lateral (m), world x and y (m), and features (N, F).
+        """
         step = self.ground_step
         rot, trans = transform[:3, :3], transform[:3, 3]
         # World bounding box of the vehicle-frame area in reach, on the cell lattice.
@@ -769,8 +914,9 @@ class NearToFar:
         i1 = math.ceil(world[:, 0].max() / step)
         j0 = math.floor(world[:, 1].min() / step)
         j1 = math.ceil(world[:, 1].max() / step)
-        gx, gy = np.meshgrid((np.arange(i0, i1) + 0.5) * step, (np.arange(j0, j1) + 0.5) * step)
-        wx, wy = gx.ravel(), gy.ravel()
+        gi, gj = np.meshgrid(np.arange(i0, i1), np.arange(j0, j1))
+        keys = np.column_stack([gi.ravel(), gj.ravel()])
+        wx, wy = (keys[:, 0] + 0.5) * step, (keys[:, 1] + 0.5) * step
         # The point of the vehicle's z = 0 plane above/below each world (x, y).
         try:
             inv = np.linalg.inv(rot[:2, :2])
@@ -783,42 +929,168 @@ class NearToFar:
             & (np.hypot(ahead, lateral) <= self.max_range)
             & ~self._in_near(ahead, lateral)
         )
-        ahead, lateral, wx, wy = ahead[keep], lateral[keep], wx[keep], wy[keep]
-        u, v = ground_to_pixel(calib, np.column_stack([ahead, lateral, np.zeros_like(ahead)]))
+        u, v = ground_to_pixel(
+            calib, np.column_stack([ahead[keep], lateral[keep], np.zeros(int(keep.sum()))])
+        )
         t_px = self.tile_px
         with np.errstate(invalid="ignore"):
-            inside = (
-                (u >= -0.5)
-                & (u < geometry.n_cols * t_px - 0.5)
-                & (v >= -0.5)
-                & (v < geometry.n_rows * t_px - 0.5)
-            )
+            col = np.floor((u + 0.5) / t_px)
+            row = np.floor((v + 0.5) / t_px)
+            inside = (col >= 0) & (col < geometry.n_cols) & (row >= 0) & (row < geometry.n_rows)
         tile = np.full(u.shape, -1, dtype=np.int64)
-        tile[inside] = np.floor((v[inside] + 0.5) / t_px).astype(
-            np.int64
-        ) * geometry.n_cols + np.floor((u[inside] + 0.5) / t_px).astype(np.int64)
-        inside &= tile >= 0
+        tile[inside] = row[inside].astype(np.int64) * geometry.n_cols + col[inside].astype(np.int64)
         inside[inside] = usable[tile[inside]]
-        ahead, lateral, wx, wy, tile = (a[inside] for a in (ahead, lateral, wx, wy, tile))
-        proba = tile_proba[tile]
+        keep[keep] = inside
+        keys, ahead, lateral, wx, wy = (a[keep] for a in (keys, ahead, lateral, wx, wy))
+        cell_features = features[tile[inside]]
         # Cells holding tile centres take the mean of those tiles instead (near the rover a
         # cell spans many tiles).
         centres = geometry.ground[usable] @ rot.T + trans
-        keys = np.floor(np.concatenate([np.column_stack([wx, wy]), centres[:, :2]]) / step).astype(
-            np.int64
-        )
+        centre_keys = np.floor(centres[:, :2] / step).astype(np.int64)
         if len(keys):
-            _, inverse = np.unique(keys, axis=0, return_inverse=True)
+            _, inverse = np.unique(np.concatenate([keys, centre_keys]), axis=0, return_inverse=True)
             inverse = inverse.ravel()
-            n_cells = len(wx)
-            sums = np.zeros((int(inverse.max()) + 1, proba.shape[1]))
+            n_cells = len(keys)
+            sums = np.zeros((int(inverse.max()) + 1, features.shape[1]))
             counts = np.zeros(len(sums))
-            np.add.at(sums, inverse[n_cells:], tile_proba[usable])
+            np.add.at(sums, inverse[n_cells:], features[usable])
             np.add.at(counts, inverse[n_cells:], 1.0)
             hits = counts[inverse[:n_cells]]
             filled = hits > 0
-            proba[filled] = sums[inverse[:n_cells]][filled] / hits[filled, None]
-        return ahead, lateral, wx, wy, proba
+            cell_features[filled] = sums[inverse[:n_cells]][filled] / hits[filled, None]
+        return keys, ahead, lateral, wx, wy, cell_features
+
+
+@dataclass(frozen=True)
+class _Cells:
+    """Ground cells of one prediction: lattice keys, positions (m) and features."""
+
+    keys: NDArray[np.int64]
+    x: NDArray[np.float64]
+    y: NDArray[np.float64]
+    ahead: NDArray[np.float64]
+    lateral: NDArray[np.float64]
+    distance: NDArray[np.float64]
+    features: NDArray[np.float64]
+
+    def row(self, k: int) -> NDArray[np.float64]:
+        """x, y, ahead, lateral, distance and the features of cell ``k`` as one array."""
+        head = [self.x[k], self.y[k], self.ahead[k], self.lateral[k], self.distance[k]]
+        return np.concatenate([head, self.features[k]])
+
+    @classmethod
+    def empty(cls, n_features: int) -> _Cells:
+        z = np.zeros(0)
+        return cls(np.zeros((0, 2), dtype=np.int64), z, z, z, z, z, np.zeros((0, n_features)))
+
+    @classmethod
+    def concat(cls, a: _Cells, b: _Cells) -> _Cells:
+        return cls(
+            *(np.concatenate([getattr(a, f), getattr(b, f)]) for f in cls.__dataclass_fields__)
+        )
+
+
+@dataclass
+class Looks:
+    """Appearance modes ("looks") of the classes: running Gaussians with diagonal covariance.
+
+    Attributes
+    ----------
+    cls : ndarray of int, shape (L,)
+        Class index of each look.
+    n : ndarray, shape (L,)
+        Tiles learnt (weighted by the label probability).
+    mean : ndarray, shape (L, F)
+        Mean features.
+    m2 : ndarray, shape (L, F)
+        Sums of squared deviations from the mean (``var = m2 / n``).
+    support : ndarray, shape (L,)
+        Updates that fed the look, weighted by the label probability.
+    """
+
+    cls: NDArray[np.intp]
+    n: NDArray[np.float64]
+    mean: NDArray[np.float64]
+    m2: NDArray[np.float64]
+    support: NDArray[np.float64]
+
+    @classmethod
+    def empty(cls, n_features: int) -> Looks:
+        """No look yet."""
+        return cls(
+            np.zeros(0, dtype=np.intp),
+            np.zeros(0),
+            np.zeros((0, n_features)),
+            np.zeros((0, n_features)),
+            np.zeros(0),
+        )
+
+    @property
+    def var(self) -> NDArray[np.float64]:
+        """Variances, shape (L, F)."""
+        return self.m2 / self.n[:, None]
+
+    def add(
+        self, c: int, n: float, mean: NDArray[np.float64], m2: NDArray[np.float64], w: float
+    ) -> None:
+        """Append a look of class ``c`` from a batch (``n`` tiles, ``mean``, ``m2``)."""
+        self.cls = np.append(self.cls, c)
+        self.n = np.append(self.n, n)
+        self.mean = np.vstack([self.mean, mean])
+        self.m2 = np.vstack([self.m2, m2])
+        self.support = np.append(self.support, w)
+
+    def merge(
+        self, i: int, n: float, mean: NDArray[np.float64], m2: NDArray[np.float64], w: float
+    ) -> None:
+        """Merge a batch into look ``i`` (Chan et al.'s parallel update of mean and m2)."""
+        total = self.n[i] + n
+        delta = mean - self.mean[i]
+        self.mean[i] = self.mean[i] + delta * (n / total)
+        self.m2[i] = self.m2[i] + m2 + delta**2 * (self.n[i] * n / total)
+        self.n[i] = total
+        self.support[i] += w
+
+    def drop(self, i: int) -> None:
+        """Forget look ``i``."""
+        keep = np.arange(len(self.cls)) != i
+        self.cls, self.n, self.support = self.cls[keep], self.n[keep], self.support[keep]
+        self.mean, self.m2 = self.mean[keep], self.m2[keep]
+
+
+def _main_look(x: NDArray[np.float64], min_var: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The tiles of the main look of a near-field batch.
+
+    A patch across a class boundary holds two looks, and its label is the class of (at
+    most) one of them. A two-component Gaussian mixture (diagonal covariances) is fitted;
+    if the Bayesian information criterion prefers it to one Gaussian and the two means are
+    told apart (squared distance above the chi-square 0.999 quantile with the variances
+    floored at ``min_var``), only the tiles of the larger component are kept.
+    """
+    from scipy.stats import chi2
+    from sklearn.mixture import GaussianMixture
+
+    if len(x) < 20:
+        return x
+    var1 = np.maximum(x.var(axis=0), 1e-12)
+    # BIC of one diagonal Gaussian, in closed form: -2 log L + p log n with p = 2 F.
+    bic1 = len(x) * np.sum(np.log(2.0 * np.pi * var1) + 1.0) + 2 * x.shape[1] * np.log(len(x))
+    gmm = GaussianMixture(2, covariance_type="diag", random_state=0, reg_covar=1e-6)
+    gmm.fit(x)
+    if gmm.bic(x) >= bic1:
+        return x
+    var = np.maximum(gmm.covariances_.max(axis=0), min_var[0])
+    d2 = float((np.diff(gmm.means_, axis=0) ** 2 / var).sum())
+    if d2 <= chi2.isf(1e-3, df=x.shape[1]):
+        return x
+    labels = gmm.predict(x)
+    main = int(np.argmax(np.bincount(labels, minlength=2)))
+    log.debug(
+        "near-to-far: near field holds two looks; keeping %d of %d tiles",
+        int((labels == main).sum()),
+        len(x),
+    )
+    return x[labels == main]
 
 
 def _inliers(features: NDArray[np.float64], k: float) -> NDArray[np.bool_]:
@@ -913,7 +1185,7 @@ def run_traverse(
     for i in imaged:
         frame = traverse.frames[i]
         image = _read_bgr(traverse.resolve(frame.left))  # type: ignore[arg-type]
-        if hasattr(model, "model_"):
+        if hasattr(model, "looks_"):
             out.append(model.predict(image, calib, frame.pose, t=frame.t, frame=i))
         if labels[i] is not None:
             model.update(image, calib, frame.pose, labels[i])
