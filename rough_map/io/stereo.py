@@ -1,0 +1,1068 @@
+"""Stereo pair -> point cloud of the patch of interest (paper section 3.2).
+
+The pipeline of the paper, step by step:
+
+1. *Disparity map*: semi-global matching (OpenCV ``StereoSGBM``) on a rectified pair,
+   :func:`compute_disparity`. Disparities are in pixels, NaN where invalid.
+2. *3-D points*: ``Z = fx B / d`` in the left camera frame, :func:`disparity_to_points`, then
+   to the vehicle frame with the rig's extrinsics, :func:`to_vehicle`.
+3. *Statistical moving-window filter*: a robust median/MAD test of the heights in small
+   windows of the ground plane, :func:`statistical_outlier_filter`.
+4. *Patch of interest*: only points over the patch footprint are kept.
+
+:func:`stereo_to_cloud` chains the four. With ``restrict_to_patch=True`` (the default) it runs
+SGM only on the image rows and columns that can see the patch (:func:`patch_window`), and on
+the residual to the flat ground's disparity (:func:`ground_disparity`, the ``prior`` of
+:func:`compute_disparity`) over +-0.15 m of height only.
+
+Why the ground prior
+--------------------
+The rig looks at the ground obliquely, so the disparity of flat ground grows by about
+0.15 px per image row. SGM assumes locally constant disparity: on such a ramp its
+aggregation (top-down in the 3WAY mode) biases the disparity low, its blocks straddle the
+ramp, and its parabolic sub-pixel fit crowds values towards integers ("pixel locking"),
+which on the ramp makes a sawtooth of +-0.2 px with a period of about 1 cm along the
+ground. Gridded at 8 mm that error lands inside the wavelengths the PSD estimator fits: on
+rendered terrain it raised the PSD at 224-393 rad/m 2-9x and flattened ``w`` by 0.5-1.0.
+Resampling the right image by the flat ground's disparity makes the ground fronto-parallel
+to the matcher; the PSD then follows the truth within a factor of about 1.5 across the band
+and ``w`` within about 0.2 (tests/test_render.py). The per-point errors are about 1 mm
+either way: they hide the difference.
+
+Limits: the stereo error adds, on rendered ground, 2e-10 to 2e-9 m^3/rad at 112 rad/m and
+1e-10 to 3e-10 m^3/rad at 224 rad/m. That dominates the high wavenumbers of very smooth
+patches (detrended rms below about 2 mm), whose ``w`` then comes out too flat.
+
+Conventions
+-----------
+* Images are rectified, undistorted, row-aligned and share one pinhole matrix ``K``
+  (``cx`` equal in both views, i.e. OpenCV ``stereoRectify`` with ``CALIB_ZERO_DISPARITY``).
+  The left camera is the reference; the right camera sits ``baseline`` metres along the
+  left camera's +x axis, so a point at depth ``Z`` has disparity ``d = u_left - u_right =
+  fx * baseline / Z``.
+* Pixel ``(u, v)`` = (column, row); integer coordinates are pixel centres (OpenCV).
+* Camera frame: OpenCV, x right, y down, z forward. Vehicle frame: x forward, y left, z up.
+  ``camera_to_vehicle`` maps left-camera coordinates to vehicle coordinates.
+* Images are 8-bit grayscale (``uint8``, shape ``(height, width)``) or 8-bit BGR
+  (``(height, width, 3)``, converted to gray).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from rough_map.errors import FileFormatError, InputError
+
+log = logging.getLogger(__name__)
+
+# The paper's patch, as rough_map.patch.DEFAULT_SIZE / DEFAULT_AHEAD (io does not import
+# patch: data flows io -> patch).
+#: Side of the patch of interest, default (m): 112 cells of 8 mm.
+PATCH_SIZE = 0.896
+#: Distance of the patch centre ahead of the vehicle origin, default (m).
+PATCH_AHEAD = 1.0
+
+_SGBM_MODES = {"SGBM": 0, "HH": 1, "SGBM_3WAY": 2, "HH4": 3}
+
+
+# --------------------------------------------------------------------------------------------
+# Calibration and configuration
+# --------------------------------------------------------------------------------------------
+
+
+def _rotation_y(angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+#: Rotation from an OpenCV camera looking straight ahead to the vehicle frame (columns are the
+#: camera axes x right, y down, z forward in vehicle coordinates).
+_CAMERA_AXES_IN_VEHICLE = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+class StereoCalibration(BaseModel):
+    """Intrinsics and extrinsics of a rectified stereo rig.
+
+    Attributes
+    ----------
+    fx, fy : float
+        Focal lengths in px.
+    cx, cy : float
+        Principal point in px (pixel centres at integer coordinates).
+    width, height : int
+        Image size in px.
+    baseline : float
+        Distance between the optical centres in m; the right camera is at ``+baseline``
+        along the left camera's x axis.
+    camera_to_vehicle : list of list of float
+        4x4 homogeneous transform, row-major, taking left-camera coordinates (OpenCV, m) to
+        vehicle coordinates (x forward, y left, z up, m).
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    fx: float = Field(gt=0)
+    fy: float = Field(gt=0)
+    cx: float
+    cy: float
+    width: int = Field(gt=0)
+    height: int = Field(gt=0)
+    baseline: float = Field(gt=0)
+    camera_to_vehicle: list[list[float]]
+
+    @field_validator("camera_to_vehicle")
+    @classmethod
+    def _check_transform(cls, value: list[list[float]]) -> list[list[float]]:
+        m = np.asarray(value, dtype=float)
+        if m.shape != (4, 4):
+            raise ValueError(f"camera_to_vehicle must be 4x4, got shape {m.shape}")
+        if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0]):
+            raise ValueError("camera_to_vehicle last row must be [0, 0, 0, 1]")
+        r = m[:3, :3]
+        if not np.allclose(r @ r.T, np.eye(3), atol=1e-5) or np.linalg.det(r) < 0:
+            raise ValueError("camera_to_vehicle rotation block is not a proper rotation")
+        return value
+
+    @model_validator(mode="after")
+    def _check_principal_point(self) -> StereoCalibration:
+        if not (0 <= self.cx < self.width and 0 <= self.cy < self.height):
+            raise ValueError("principal point (cx, cy) must lie inside the image")
+        return self
+
+    @property
+    def K(self) -> np.ndarray:
+        """3x3 camera matrix in px."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def T_vehicle_camera(self) -> np.ndarray:
+        """4x4 transform left camera -> vehicle as an array (m)."""
+        return np.asarray(self.camera_to_vehicle, dtype=float)
+
+    @property
+    def focal_baseline(self) -> float:
+        """``fx * baseline`` in px m: depth ``Z = focal_baseline / d``."""
+        return self.fx * self.baseline
+
+    @classmethod
+    def from_file(cls, path: str | Path) -> StereoCalibration:
+        """Read a calibration from YAML (``.yaml``/``.yml``) or JSON (``.json``).
+
+        Raises
+        ------
+        FileFormatError
+            The file cannot be read or parsed.
+        SchemaError
+            A field is missing, unknown or invalid.
+        """
+        from rough_map.config import load_model  # config imports this module
+
+        return load_model(path, cls)
+
+    def to_file(self, path: str | Path) -> None:
+        """Write the calibration as YAML (or JSON if ``path`` ends in ``.json``)."""
+        path = Path(path)
+        data = self.model_dump()
+        text = (
+            json.dumps(data, indent=2)
+            if path.suffix.lower() == ".json"
+            else yaml.safe_dump(data, sort_keys=False)
+        )
+        path.write_text(text, encoding="utf-8")
+
+    @classmethod
+    def xb3_default(cls) -> StereoCalibration:
+        """An XB3-like rig (wide pair, 3.8 mm lenses) as mounted for the paper's patch.
+
+        1280x960 px, ``fx = fy = 985`` px (66 deg horizontal field of view), baseline 0.24 m.
+        The left camera is 1.00 m above the ground, 0.20 m behind the vehicle origin and
+        0.12 m to the left of the centre line (the rig is centred), pitched down 42 deg. The
+        flat 0.896 m patch centred 1 m ahead projects to columns 376-1095 and rows 292-672 of
+        the left image (>= 184 px clear of the right image's left edge), disparities 125-193
+        px (depth 1.23-1.89 m). Widened by 5 cm and +-0.15 m in height (the patch path's
+        search volume) it still fits: columns 298-1198, rows 208-773, disparities 116-217.
+        """
+        rotation = _rotation_y(math.radians(42.0)) @ _CAMERA_AXES_IN_VEHICLE
+        transform = np.eye(4)
+        transform[:3, :3] = rotation
+        transform[:3, 3] = [-0.20, 0.12, 1.00]
+        return cls(
+            fx=985.0,
+            fy=985.0,
+            cx=639.5,
+            cy=479.5,
+            width=1280,
+            height=960,
+            baseline=0.24,
+            camera_to_vehicle=transform.tolist(),
+        )
+
+
+class SGBMConfig(BaseModel):
+    """Parameters of OpenCV ``StereoSGBM``, named as in OpenCV.
+
+    Defaults are those of ``configs/stereo.yaml``. ``P1 = 8 * blockSize**2`` and ``P2 = 32 *
+    blockSize**2`` are OpenCV's recommendation for one channel. ``SGBM_3WAY`` is the fastest
+    mode and the only one OpenCV runs on several threads.
+
+    Attributes
+    ----------
+    minDisparity : int
+        Smallest disparity searched, px.
+    numDisparities : int
+        Number of disparities searched, px, a positive multiple of 16. 256 covers depths from
+        ``fx B / 256`` = 0.92 m for the XB3-like rig; the patch path overrides both from the
+        geometry (see :func:`patch_window`).
+    blockSize : int
+        Odd matching block side, px.
+    P1, P2 : int
+        Penalties for disparity changes of 1 px and of more than 1 px between neighbours.
+    disp12MaxDiff : int
+        Largest left-right consistency difference, px; negative to disable.
+    preFilterCap : int
+        Clip of the x-derivative prefilter.
+    uniquenessRatio : int
+        Margin in % by which the best cost must beat the second best.
+    speckleWindowSize : int
+        Largest size in px of a disparity blob treated as speckle and removed; 0 disables.
+    speckleRange : int
+        Largest disparity variation within a connected blob, px.
+    mode : {"SGBM", "HH", "SGBM_3WAY", "HH4"}
+        OpenCV SGBM variant.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    # OpenCV's names, on purpose: the YAML keys map 1:1 onto cv2.StereoSGBM.create.
+    minDisparity: int = 0
+    numDisparities: int = Field(256, gt=0, multiple_of=16)
+    blockSize: int = Field(5, ge=1, le=11)
+    P1: int = Field(200, ge=0)
+    P2: int = Field(800, ge=0)
+    disp12MaxDiff: int = 1
+    preFilterCap: int = Field(63, ge=1, le=63)
+    uniquenessRatio: int = Field(10, ge=0, le=100)
+    speckleWindowSize: int = Field(100, ge=0)
+    speckleRange: int = Field(2, ge=0)
+    mode: Literal["SGBM", "HH", "SGBM_3WAY", "HH4"] = "SGBM_3WAY"
+
+    @model_validator(mode="after")
+    def _check(self) -> SGBMConfig:
+        if self.blockSize % 2 == 0:
+            raise ValueError(f"blockSize must be odd, got {self.blockSize}")
+        if self.P2 <= self.P1:
+            raise ValueError(f"P2 ({self.P2}) must be greater than P1 ({self.P1})")
+        return self
+
+
+class OutlierFilterConfig(BaseModel):
+    """Parameters of :func:`statistical_outlier_filter`.
+
+    Attributes
+    ----------
+    cell : float
+        Side of the square ground-plane window, m.
+    k : float
+        Rejection threshold in robust standard deviations (``1.4826 * MAD``).
+    min_tolerance : float
+        Smallest tolerated deviation from the window median, m; keeps a flat, quantised
+        window from rejecting everything when its MAD is about zero.
+    min_count : int
+        Windows with fewer points are dropped as isolated.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    cell: float = Field(0.024, gt=0)
+    k: float = Field(3.5, gt=0)
+    min_tolerance: float = Field(0.003, ge=0)
+    min_count: int = Field(3, ge=1)
+
+
+class StereoConfig(BaseModel):
+    """Everything :func:`stereo_to_cloud` needs besides the calibration (``configs/stereo.yaml``).
+
+    Attributes
+    ----------
+    sgbm : SGBMConfig
+        Matcher parameters.
+    outlier_filter : OutlierFilterConfig or None
+        The statistical moving-window filter; ``None`` disables it.
+    height_tolerance : float
+        Heights in m above or below the vehicle's ground plane (z = 0) that the patch path
+        still sees: the row band and the disparity range cover ``z = +-height_tolerance``.
+    crop_margin : float
+        Margin in m around the patch footprint kept in the returned cloud.
+    margin_px : int
+        Extra image rows kept on each side of the patch's row band, px.
+    row_step : int
+        Image rows averaged into one before matching (vertical binning, see
+        :func:`compute_disparity`), in both paths. 2 is about 1.5x faster and keeps the
+        disparity precision, but the matching blocks then span ~3 cm of ground along the
+        profiles: it low-passes them (PSD 0.3-0.7x the truth above 200 rad/m).
+    ground_prior : bool
+        Patch path: match the residual to the flat ground's disparity (``prior`` of
+        :func:`compute_disparity`) instead of the disparity itself; see the module notes.
+    equalize_subpixel : bool
+        Correct SGM's pixel locking with :func:`equalize_subpixel` before triangulating, in
+        the full-frame path and in the patch path without ``ground_prior``.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    sgbm: SGBMConfig = Field(default_factory=SGBMConfig)
+    outlier_filter: OutlierFilterConfig | None = Field(default_factory=OutlierFilterConfig)
+    height_tolerance: float = Field(0.15, ge=0)
+    crop_margin: float = Field(0.05, ge=0)
+    margin_px: int = Field(8, ge=0)
+    row_step: int = Field(1, ge=1, le=8)
+    ground_prior: bool = True
+    equalize_subpixel: bool = True
+
+    @classmethod
+    def from_file(cls, path: str | Path) -> StereoConfig:
+        """Read ``configs/stereo.yaml``-style YAML or JSON; missing keys take the defaults.
+
+        Raises
+        ------
+        FileFormatError
+            The file cannot be read or parsed.
+        SchemaError
+            A key is unknown or a value invalid.
+        """
+        from rough_map.config import load_model  # config imports this module
+
+        return load_model(path, cls)
+
+
+# --------------------------------------------------------------------------------------------
+# Images and disparity
+# --------------------------------------------------------------------------------------------
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """Read an image file as 8-bit grayscale, shape ``(height, width)``.
+
+    Raises
+    ------
+    FileFormatError
+        The file is missing or not an image OpenCV can decode.
+    """
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileFormatError(path, "no such file")
+    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if image is None:
+        raise FileFormatError(path, "not an image OpenCV can decode")
+    return image
+
+
+def _as_gray(image: np.ndarray, name: str) -> np.ndarray:
+    import cv2
+
+    image = np.asarray(image)
+    if image.dtype != np.uint8:
+        raise InputError(f"{name} image must be uint8 (8-bit), got dtype {image.dtype}")
+    if image.ndim == 3 and image.shape[2] == 3:
+        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if image.ndim != 2:
+        raise InputError(
+            f"{name} image must be (height, width) gray or (height, width, 3) BGR, "
+            f"got shape {image.shape}"
+        )
+    return image
+
+
+def _check_pair(
+    left: np.ndarray, right: np.ndarray, calib: StereoCalibration | None
+) -> tuple[np.ndarray, np.ndarray]:
+    left_g, right_g = _as_gray(left, "left"), _as_gray(right, "right")
+    if left_g.shape != right_g.shape:
+        raise InputError(
+            f"left and right images differ in size: {left_g.shape[::-1]} vs "
+            f"{right_g.shape[::-1]} (width, height)"
+        )
+    if calib is not None and left_g.shape != (calib.height, calib.width):
+        raise InputError(
+            f"images are {left_g.shape[1]}x{left_g.shape[0]} px but the calibration is for "
+            f"{calib.width}x{calib.height} px"
+        )
+    return left_g, right_g
+
+
+def compute_disparity(
+    left: np.ndarray,
+    right: np.ndarray,
+    config: SGBMConfig | None = None,
+    rows: tuple[int, int] | None = None,
+    *,
+    cols: tuple[int, int] | None = None,
+    disparities: tuple[int, int] | None = None,
+    row_step: int = 1,
+    prior: tuple[float, float, float] | None = None,
+    equalize: bool = False,
+    trim: int = 0,
+) -> np.ndarray:
+    """Disparity of a rectified pair by semi-global matching (OpenCV ``StereoSGBM``).
+
+    Parameters
+    ----------
+    left, right : ndarray of uint8
+        Rectified images, gray ``(H, W)`` or BGR ``(H, W, 3)``, same size.
+    config : SGBMConfig, optional
+        Matcher parameters; defaults to ``SGBMConfig()``.
+    rows : (int, int), optional
+        Compute only image rows ``r0 <= v < r1`` (px). SGM runs on the band widened by
+        ``2 * blockSize`` rows on each side so that the matching blocks and the vertical
+        aggregation paths are complete at the band's edges.
+    cols : (int, int), optional
+        Only left-image columns ``c0 <= u < c1`` (px) are needed; the images are cropped to
+        what those columns can match before matching and the rest of the output is NaN.
+    disparities : (int, int), optional
+        ``(minDisparity, numDisparities)`` in px overriding the config's (``numDisparities``
+        is rounded up to a multiple of 16). With a ``prior``, the range of ``d - d0``.
+    row_step : int
+        Average the images over groups of ``row_step`` rows before matching (vertical
+        binning). SGM does ``row_step`` times less work and the disparity precision is kept,
+        but the blocks then span ``row_step`` times more rows: on the rig's oblique view of
+        the ground that low-passes the longitudinal profiles.
+    prior : (float, float, float), optional
+        Expected disparity ``d0(u, v) = a u + b v + c`` in px, e.g. of the flat ground
+        (:func:`ground_disparity`; a plane's disparity is affine in ``(u, v)``). The right
+        image is resampled (bicubic) so that ``d0`` becomes zero, SGM matches the residual
+        ``d - d0``, and ``d`` is returned. Ground seen obliquely then looks fronto-parallel
+        to the matcher: its blocks no longer straddle a disparity ramp (which costs SGM
+        noise and a bias), and the search only has to cover the heights of interest.
+    equalize : bool
+        Correct pixel locking with :func:`equalize_subpixel` on what SGM matched (before the
+        prior is added back). Leave it off with a prior: the residual of smooth ground
+        crowds near zero instead of spreading over the sub-pixel range as the correction
+        assumes.
+    trim : int
+        Drop matches within ``trim`` px of the ends of the searched range: surfaces outside
+        the range match wrongly and such matches pile up there.
+
+    Returns
+    -------
+    ndarray of float32, shape (ceil((r1 - r0) / row_step), W)
+        Disparity ``u_left - u_right`` in px (full-resolution pixels, OpenCV's 1/16 px
+        steps unless corrected); NaN where no valid match was found. Row ``i`` is image row
+        ``r0 + row_step * i + (row_step - 1) / 2`` (the centre of its group).
+
+    Raises
+    ------
+    InputError
+        Images of different sizes or not 8-bit, or a band outside the image.
+    """
+    import cv2
+
+    config = config or SGBMConfig()
+    left_g, right_g = _check_pair(left, right, None)
+    height, width = left_g.shape
+    r0, r1 = (0, height) if rows is None else (int(rows[0]), int(rows[1]))
+    if not 0 <= r0 < r1 <= height:
+        raise InputError(f"rows must satisfy 0 <= r0 < r1 <= {height}, got ({r0}, {r1})")
+    min_d, num_d = (
+        (config.minDisparity, config.numDisparities)
+        if disparities is None
+        else (int(disparities[0]), 16 * max(1, math.ceil(disparities[1] / 16)))
+    )
+    max_d = min_d + num_d - 1
+    c0, c1 = (0, width) if cols is None else (int(cols[0]), int(cols[1]))
+    if not 0 <= c0 < c1 <= width:
+        raise InputError(f"cols must satisfy 0 <= c0 < c1 <= {width}, got ({c0}, {c1})")
+    if row_step < 1:
+        raise InputError(f"row_step must be >= 1, got {row_step}")
+
+    n_out = -(-(r1 - r0) // row_step)
+    r1_full = r0 + n_out * row_step  # may pass the image bottom: padded below
+    # Widen the band by 2 blocks (of binned rows) each way, in whole groups of row_step rows.
+    b0 = r0 - row_step * min(r0 // row_step, 2 * config.blockSize)
+    b1 = min(height, r1_full + row_step * 2 * config.blockSize)
+    b1 -= (b1 - b0) % row_step
+    # Left pixels can only match once u - max_d >= 0: keep that much image left of c0, and
+    # with negative disparities (residuals) |min_d| right of c1.
+    a0 = max(0, c0 - max(max_d, 0) - config.blockSize)
+    a1 = min(width, c1 + max(-min_d, 0) + config.blockSize)
+    left_band = left_g[b0:b1, a0:a1]
+    if prior is None:
+        right_band = right_g[b0:b1, a0:a1]
+    else:
+        # right_w(u, v) = right(u - d0(u, v), v): a match at residual r means d = r + d0(u - r).
+        u = np.arange(a0, a1, dtype=np.float64)[None, :]
+        v = np.arange(b0, b1, dtype=np.float64)[:, None]
+        map_x = (u - (prior[0] * u + prior[1] * v + prior[2])).astype(np.float32)
+        map_y = np.ascontiguousarray(np.broadcast_to(v.astype(np.float32), map_x.shape))
+        right_band = cv2.remap(
+            right_g, map_x, map_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+        )
+    if row_step > 1:
+        size = (a1 - a0, (b1 - b0) // row_step)
+        left_band = cv2.resize(left_band, size, interpolation=cv2.INTER_AREA)
+        right_band = cv2.resize(right_band, size, interpolation=cv2.INTER_AREA)
+    matcher = cv2.StereoSGBM.create(
+        minDisparity=min_d,
+        numDisparities=num_d,
+        blockSize=config.blockSize,
+        P1=config.P1,
+        P2=config.P2,
+        disp12MaxDiff=config.disp12MaxDiff,
+        preFilterCap=config.preFilterCap,
+        uniquenessRatio=config.uniquenessRatio,
+        speckleWindowSize=config.speckleWindowSize,
+        speckleRange=config.speckleRange,
+        mode=_SGBM_MODES[config.mode],
+    )
+    raw = matcher.compute(np.ascontiguousarray(left_band), np.ascontiguousarray(right_band))
+    first = (r0 - b0) // row_step
+    raw = raw[first : first + n_out, c0 - a0 : c1 - a0]
+    band = raw.astype(np.float32) * np.float32(1.0 / 16.0)
+    band[raw < min_d * 16] = np.nan
+    if trim > 0:
+        with np.errstate(invalid="ignore"):
+            band[(band < min_d + trim) | (band > max_d - trim)] = np.nan
+    if equalize:
+        band = equalize_subpixel(band)
+    if prior is not None:
+        u = np.arange(c0, c1, dtype=np.float64)[None, :]
+        v = (r0 + row_step * np.arange(raw.shape[0]) + 0.5 * (row_step - 1))[:, None]
+        band = (band + prior[0] * (u - band) + prior[1] * v + prior[2]).astype(np.float32)
+    out = np.full((n_out, width), np.nan, dtype=np.float32)
+    out[: raw.shape[0], c0:c1] = band
+    log.debug(
+        "SGBM rows %d-%d/%d cols %d-%d disparities %d+%d: %.0f%% valid",
+        r0,
+        r1,
+        row_step,
+        c0,
+        c1,
+        min_d,
+        num_d,
+        100.0 * np.isfinite(band).mean(),
+    )
+    return out
+
+
+def equalize_subpixel(disp: np.ndarray, min_span: float = 16.0) -> np.ndarray:
+    """Undo SGM's pixel locking by equalising the histogram of the sub-pixel parts.
+
+    SGM refines each integer disparity by fitting a parabola to the costs at ``d - 1, d,
+    d + 1``; the costs are not parabolic, so the refined values crowd towards integers
+    ("pixel locking", Shimizu and Okutomi 2001): on the rig's slanted ground the error is a
+    sawtooth of +-0.2 px with a period of one pixel of disparity, about 1 cm along the
+    ground, right inside the wavelengths the PSD estimator fits. Where the map holds many
+    pixels whose true disparities spread over many integers (ground seen obliquely), the true
+    sub-pixel parts are uniformly distributed, so mapping each observed part
+    ``r = d - round(d)`` through the empirical CDF of all of them, ``r' = F(r) - 1/2``,
+    restores a uniform distribution and removes most of the sawtooth (measured on rendered
+    ground: the error's dependence on the true sub-pixel part drops from -0.20..+0.09 px to
+    -0.05..0 px). The cut is at ``r = -1/2``, where fewest values fall.
+
+    Parameters
+    ----------
+    disp : ndarray
+        Disparities in px (NaN where invalid), e.g. from :func:`compute_disparity`.
+    min_span : float
+        Smallest spread (5th to 95th percentile) of the valid disparities, px, for which the
+        uniform assumption is made; below it ``disp`` is returned unchanged.
+
+    Returns
+    -------
+    ndarray of float32
+        Corrected disparities, px, NaN where ``disp`` is.
+    """
+    disp = np.asarray(disp, dtype=np.float32)
+    values = disp[np.isfinite(disp)]
+    if values.size < 1000:
+        return disp.copy()
+    lo, hi = np.percentile(values, [5, 95])
+    if hi - lo < min_span:
+        return disp.copy()
+    whole = np.floor(disp + 0.5)
+    # OpenCV's disparities are multiples of 1/16 px: 16 possible sub-pixel parts.
+    bins = np.clip(np.rint((disp - whole) * 16), -8, 7)
+    finite = np.isfinite(bins)
+    index = bins[finite].astype(np.int64) + 8
+    counts = np.bincount(index, minlength=16)
+    cdf = (np.cumsum(counts) - 0.5 * counts) / counts.sum() - 0.5
+    out = np.full_like(disp, np.nan)
+    out[finite] = whole[finite] + cdf[index]
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Geometry
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PatchWindow:
+    """The part of the left image, and the disparities, that can see the patch of interest.
+
+    Attributes
+    ----------
+    rows : (int, int)
+        Row band ``r0 <= v < r1``, px.
+    cols : (int, int)
+        Column band ``c0 <= u < c1``, px.
+    disparities : (int, int)
+        ``(minDisparity, numDisparities)`` in px, ``numDisparities`` a multiple of 16.
+    prior : (float, float, float)
+        Disparity of the flat ground ``d0(u, v) = a u + b v + c``, px (:func:`ground_disparity`).
+    residual : (int, int)
+        ``(minDisparity, numDisparities)`` of ``d - d0`` over the window, px.
+    """
+
+    rows: tuple[int, int]
+    cols: tuple[int, int]
+    disparities: tuple[int, int]
+    prior: tuple[float, float, float]
+    residual: tuple[int, int]
+
+
+def patch_window(
+    calib: StereoCalibration,
+    ahead: float = PATCH_AHEAD,
+    size: float = PATCH_SIZE,
+    ground_z: float = 0.0,
+    *,
+    lateral: float = 0.0,
+    height_tolerance: float = 0.15,
+    crop_margin: float = 0.05,
+    margin_px: int = 8,
+) -> PatchWindow:
+    """Image rows, columns and disparities that see the patch of interest.
+
+    The patch is the square ``|x - ahead| <= size/2``, ``|y - lateral| <= size/2`` of the
+    vehicle frame widened by ``crop_margin``, on flat ground at
+    ``z = ground_z +- height_tolerance``. The eight corners of that box are projected into the
+    left image; a box projects inside the convex hull of its corners, so their extremes bound
+    it.
+
+    Parameters
+    ----------
+    calib : StereoCalibration
+        The rig.
+    ahead : float
+        Distance of the patch centre ahead of the vehicle origin, m.
+    size : float
+        Side of the patch, m.
+    ground_z : float
+        Height of the ground in the vehicle frame, m.
+    lateral : float
+        Offset of the patch centre to the left (+y), m.
+    height_tolerance : float
+        Height band around ``ground_z`` the window must still see, m.
+    crop_margin : float
+        Margin around the patch, m.
+    margin_px : int
+        Extra rows and columns on each side, px.
+
+    Returns
+    -------
+    PatchWindow
+
+    Raises
+    ------
+    InputError
+        The patch is behind the camera or not entirely inside both images.
+    """
+    half = size / 2.0 + crop_margin
+    corners = np.array(
+        [
+            [ahead + sx * half, lateral + sy * half, ground_z + sz * height_tolerance]
+            for sx in (-1, 1)
+            for sy in (-1, 1)
+            for sz in (-1, 1)
+        ]
+    )
+    transform = calib.T_vehicle_camera
+    cam = (corners - transform[:3, 3]) @ transform[:3, :3]  # R^T (p - t)
+    if np.any(cam[:, 2] <= 0.05):
+        raise InputError("the patch of interest is behind or too close to the left camera")
+    u = calib.fx * cam[:, 0] / cam[:, 2] + calib.cx
+    v = calib.fy * cam[:, 1] / cam[:, 2] + calib.cy
+    d = calib.focal_baseline / cam[:, 2]
+    if u.min() < 0 or u.max() > calib.width - 1 or v.min() < 0 or v.max() > calib.height - 1:
+        raise InputError(
+            f"the patch of interest ({size:g} m square, {ahead:g} m ahead) is not inside the "
+            f"left image: it spans u {u.min():.0f}..{u.max():.0f}, v {v.min():.0f}..{v.max():.0f}"
+        )
+    if (u - d).min() < 0:
+        raise InputError(
+            "the patch of interest is not inside the right image (u - d reaches "
+            f"{(u - d).min():.0f} px)"
+        )
+    prior = ground_disparity(calib, ground_z)
+    r = d - (prior[0] * u + prior[1] * v + prior[2])
+    min_r = math.floor(r.min()) - 2
+    residual = (min_r, 16 * math.ceil((math.ceil(r.max()) + 2 - min_r) / 16))
+    rows = (
+        max(0, math.floor(v.min()) - margin_px),
+        min(calib.height, math.ceil(v.max()) + 1 + margin_px),
+    )
+    cols = (
+        max(0, math.floor(u.min()) - margin_px),
+        min(calib.width, math.ceil(u.max()) + 1 + margin_px),
+    )
+    min_d = max(0, math.floor(d.min()) - 2)
+    num_d = 16 * math.ceil((math.ceil(d.max()) + 2 - min_d) / 16)
+    return PatchWindow(
+        rows=rows, cols=cols, disparities=(min_d, num_d), prior=prior, residual=residual
+    )
+
+
+def ground_disparity(calib: StereoCalibration, ground_z: float = 0.0) -> tuple[float, float, float]:
+    """Disparity of the plane ``z = ground_z`` of the vehicle frame, ``d0 = a u + b v + c``.
+
+    A left-camera ray through pixel ``(u, v)`` with unit depth has vehicle-frame direction
+    ``R (xn, yn, 1)``, ``xn = (u - cx) / fx``, ``yn = (v - cy) / fy``; it meets the plane at
+    depth ``Z = (ground_z - t_z) / r_z`` with ``r_z = R[2] . (xn, yn, 1)``, so
+    ``d0 = fx B / Z`` is affine in ``(u, v)``. Pixels looking above the horizon get
+    ``d0 <= 0``.
+
+    Returns
+    -------
+    (float, float, float)
+        ``(a, b, c)``: px per px of u, px per px of v, px.
+    """
+    transform = calib.T_vehicle_camera
+    height = ground_z - transform[2, 3]
+    if height >= 0:
+        raise InputError(f"the camera must be above the ground (ground_z={ground_z} m)")
+    k = calib.focal_baseline / height
+    r20, r21, r22 = transform[2, :3]
+    a = k * r20 / calib.fx
+    b = k * r21 / calib.fy
+    c = k * (r22 - r20 * calib.cx / calib.fx - r21 * calib.cy / calib.fy)
+    return (float(a), float(b), float(c))
+
+
+def patch_rows(
+    calib: StereoCalibration,
+    ahead: float = PATCH_AHEAD,
+    size: float = PATCH_SIZE,
+    ground_z: float = 0.0,
+    *,
+    lateral: float = 0.0,
+    height_tolerance: float = 0.15,
+    margin_px: int = 8,
+) -> tuple[int, int]:
+    """Row band ``(r0, r1)`` of the left image that sees the patch; see :func:`patch_window`."""
+    return patch_window(
+        calib,
+        ahead,
+        size,
+        ground_z,
+        lateral=lateral,
+        height_tolerance=height_tolerance,
+        margin_px=margin_px,
+    ).rows
+
+
+def disparity_to_points(
+    disp: np.ndarray, calib: StereoCalibration, rows_offset: int = 0, row_step: int = 1
+) -> np.ndarray:
+    """3-D points in the left camera frame from a disparity map.
+
+    Parameters
+    ----------
+    disp : ndarray, shape (h, W)
+        Disparity in px (NaN or <= 0 where invalid), e.g. from :func:`compute_disparity`.
+    calib : StereoCalibration
+        The rig.
+    rows_offset : int
+        Image row of ``disp[0]``, px (``r0`` of a row band).
+    row_step : int
+        Rows binned per row of ``disp`` (see :func:`compute_disparity`): row ``i`` is image
+        row ``rows_offset + row_step * i + (row_step - 1) / 2``.
+
+    Returns
+    -------
+    ndarray of float64, shape (N, 3)
+        ``(X, Y, Z)`` in m in the left camera frame (OpenCV), one per valid pixel, in row-major
+        pixel order: ``Z = fx B / d``, ``X = (u - cx) Z / fx``, ``Y = (v - cy) Z / fy``.
+    """
+    disp = np.asarray(disp)
+    if disp.ndim != 2:
+        raise InputError(f"disp must be 2-D, got shape {disp.shape}")
+    height, width = disp.shape
+    with np.errstate(invalid="ignore"):
+        valid = disp > 0  # False for NaN
+    z = calib.focal_baseline / disp[valid].astype(np.float64)
+    # Normalised image coordinates per column and per row, picked per valid pixel.
+    x_norm = (np.arange(width) - calib.cx) / calib.fx
+    rows = rows_offset + row_step * np.arange(height) + 0.5 * (row_step - 1)
+    y_norm = (rows - calib.cy) / calib.fy
+    points = np.empty((z.size, 3))
+    points[:, 0] = np.broadcast_to(x_norm, disp.shape)[valid] * z
+    points[:, 1] = np.broadcast_to(y_norm[:, None], disp.shape)[valid] * z
+    points[:, 2] = z
+    return points
+
+
+def to_vehicle(points: np.ndarray, calib: StereoCalibration) -> np.ndarray:
+    """Left-camera points (N, 3), m, to the vehicle frame (N, 3), m."""
+    points = np.asarray(points, dtype=float)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise InputError(f"points must have shape (N, 3), got {points.shape}")
+    transform = calib.T_vehicle_camera
+    # Column by column rather than ``points @ R.T``: an (N, 3) x (3, 3) product goes through
+    # BLAS, whose threads cost more than the arithmetic (and spin on a busy machine).
+    x, y, z = (np.ascontiguousarray(c) for c in points.T)
+    out = np.empty_like(points)
+    for i in range(3):
+        r = transform[i]
+        out[:, i] = r[0] * x + r[1] * y + r[2] * z + r[3]
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Statistical moving-window filter
+# --------------------------------------------------------------------------------------------
+
+
+def statistical_outlier_mask(
+    points: np.ndarray,
+    cell: float = 0.024,
+    k: float = 3.5,
+    min_tolerance: float = 0.003,
+    min_count: int = 3,
+) -> np.ndarray:
+    """Inliers of the statistical moving-window filter; see :func:`statistical_outlier_filter`.
+
+    Returns
+    -------
+    ndarray of bool, shape (N,)
+        True for the points kept.
+    """
+    points = np.asarray(points, dtype=float)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise InputError(f"points must have shape (N, 3), got {points.shape}")
+    if not cell > 0:
+        raise InputError(f"cell must be positive (m), got {cell}")
+    n = points.shape[0]
+    if n == 0:
+        return np.zeros(0, dtype=bool)
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    ix = ((x - x.min()) / cell).astype(np.int64)
+    iy = ((y - y.min()) / cell).astype(np.int64)
+    n_keys = (int(ix.max()) + 1) * (int(iy.max()) + 1)
+    key = iy * (int(ix.max()) + 1) + ix
+    # One sort orders the points by window, then by height: the window index plus the height
+    # scaled into [0, 1). float64 keeps the height to ~1e-11 of the cloud's z range.
+    z0 = float(z.min())
+    scale = float(z.max() - z0) * (1.0 + 1e-9) or 1.0
+    zs = (z - z0) / scale
+    keyed = key + zs
+    g = np.sort(keyed)
+    key_sorted = g.astype(np.int64)
+    starts = np.concatenate(([0], np.flatnonzero(np.diff(key_sorted)) + 1))
+    counts = np.diff(np.append(starts, n))
+    cells = key_sorted[starts]
+    centre = 0.5 * (g[starts + (counts - 1) // 2] + g[starts + counts // 2])  # cell + median
+    if n_keys <= 4 * n + 1024:
+        lookup = np.empty(n_keys, dtype=np.int64)
+        lookup[cells] = np.arange(len(cells))
+        window = lookup[key]
+    else:  # sparse clouds over large areas: no dense table
+        window = np.searchsorted(cells, key)
+    deviation = np.abs(keyed - centre[window])  # < 1, in units of scale
+    # Same trick for the MAD: the windows (hence starts and counts) are the same.
+    d = np.sort(key + deviation)
+    mad = 0.5 * (d[starts + (counts - 1) // 2] + d[starts + counts // 2]) - cells
+    tolerance = np.maximum(k * 1.4826 * mad, min_tolerance / scale)
+    keep = (deviation <= tolerance[window]) & (counts[window] >= min_count)
+    log.debug("outlier filter: %d of %d points rejected", n - int(keep.sum()), n)
+    return keep
+
+
+def statistical_outlier_filter(
+    points: np.ndarray,
+    cell: float = 0.024,
+    k: float = 3.5,
+    min_tolerance: float = 0.003,
+    min_count: int = 3,
+) -> np.ndarray:
+    """The paper's statistical moving-window filter: drop height outliers, window by window.
+
+    The ground plane (x, y) is cut into square windows of side ``cell``. In each window the
+    median height ``m`` and the median absolute deviation ``MAD = median |z - m|`` are
+    computed, and a point is kept if ``|z - m| <= max(k * 1.4826 * MAD, min_tolerance)``
+    (``1.4826 * MAD`` estimates the standard deviation of Gaussian heights, and unlike the
+    standard deviation itself is not inflated by the outliers it is meant to find). Windows
+    holding fewer
+    than ``min_count`` points are dropped as isolated. The windows are fixed squares, not
+    centred on each point. It is vectorised, two sorts of ``window index + scaled height``:
+    30-40 ms for the 285 000 points of a stereo patch on a busy 2-core machine, where
+    open3d's ``remove_statistical_outlier`` (a k-nearest-neighbour distance test) took
+    1.1-1.4 s in the same run.
+
+    Parameters
+    ----------
+    points : ndarray, shape (N, 3)
+        Points in m in a frame with z up (vehicle or world).
+    cell : float
+        Window side, m. Several grid cells of the patch (8 mm) wide, small enough that the
+        terrain's own relief inside a window is mostly below the noise.
+    k : float
+        Threshold in robust standard deviations.
+    min_tolerance : float
+        Smallest tolerated deviation, m.
+    min_count : int
+        Smallest number of points in a window.
+
+    Returns
+    -------
+    ndarray, shape (M, 3)
+        The points kept, in their original order.
+    """
+    return np.asarray(points)[statistical_outlier_mask(points, cell, k, min_tolerance, min_count)]
+
+
+# --------------------------------------------------------------------------------------------
+# The pipeline
+# --------------------------------------------------------------------------------------------
+
+
+def crop_to_patch(
+    points: np.ndarray,
+    ahead: float = PATCH_AHEAD,
+    size: float = PATCH_SIZE,
+    margin: float = 0.05,
+    height_tolerance: float | None = None,
+    ground_z: float = 0.0,
+    lateral: float = 0.0,
+) -> np.ndarray:
+    """Points of the vehicle frame over the patch footprint.
+
+    Parameters
+    ----------
+    points : ndarray, shape (N, 3)
+        Points in the vehicle frame, m.
+    ahead, size : float
+        Patch centre distance ahead of the vehicle origin and patch side, m.
+    margin : float
+        Margin added around the footprint, m.
+    height_tolerance : float, optional
+        If given, also drop points with ``|z - ground_z| > height_tolerance`` (m).
+    ground_z : float
+        Ground height in the vehicle frame, m.
+    lateral : float
+        Offset of the patch centre to the left (+y), m.
+
+    Returns
+    -------
+    ndarray, shape (M, 3)
+        The points kept, in their original order.
+    """
+    half = size / 2.0 + margin
+    inside = (np.abs(points[:, 0] - ahead) <= half) & (np.abs(points[:, 1] - lateral) <= half)
+    if height_tolerance is not None:
+        inside &= np.abs(points[:, 2] - ground_z) <= height_tolerance
+    return points[inside]
+
+
+def stereo_to_cloud(
+    left: np.ndarray,
+    right: np.ndarray,
+    calib: StereoCalibration,
+    config: StereoConfig | None = None,
+    *,
+    restrict_to_patch: bool = True,
+    ahead: float = PATCH_AHEAD,
+    size: float = PATCH_SIZE,
+    lateral: float = 0.0,
+) -> np.ndarray:
+    """Point cloud in the vehicle frame from a rectified stereo pair (paper section 3.2).
+
+    Parameters
+    ----------
+    left, right : ndarray of uint8
+        Rectified images, gray ``(H, W)`` or BGR ``(H, W, 3)``, of the calibration's size.
+    calib : StereoCalibration
+        The rig.
+    config : StereoConfig, optional
+        Matcher, filter and window settings; defaults to ``StereoConfig()``.
+    restrict_to_patch : bool
+        If True, match only the rows and columns that can see the patch
+        (:func:`patch_window`), on the residual to the ground's disparity when
+        ``config.ground_prior`` (4-5x faster than the full frame), and return only the points
+        over the
+        patch footprint plus ``config.crop_margin`` and within ``config.height_tolerance`` of
+        the vehicle's ground plane (the volume searched); if False, match the full frame with
+        the config's disparity range and return every valid point.
+    ahead, size, lateral : float
+        Patch centre distance ahead of the vehicle origin, patch side, and offset of the
+        patch centre to the left, m.
+
+    Returns
+    -------
+    ndarray of float64, shape (N, 3)
+        Points ``(x, y, z)`` in m in the vehicle frame (x forward, y left, z up), after the
+        statistical moving-window filter if ``config.outlier_filter`` is set.
+
+    Raises
+    ------
+    InputError
+        Images of different sizes, not 8-bit, or not matching the calibration; a patch
+        outside the images.
+    """
+    config = config or StereoConfig()
+    left_g, right_g = _check_pair(left, right, calib)
+    if restrict_to_patch:
+        window = patch_window(
+            calib,
+            ahead,
+            size,
+            lateral=lateral,
+            height_tolerance=config.height_tolerance,
+            crop_margin=config.crop_margin,
+            margin_px=config.margin_px,
+        )
+        # Ground outside the searched volume (e.g. beyond the patch in the band's top rows)
+        # can only match wrongly; such matches pile up at the ends of the search range
+        # (trim) or reconstruct outside the volume (crop_to_patch below).
+        disp = compute_disparity(
+            left_g,
+            right_g,
+            config.sgbm,
+            window.rows,
+            cols=window.cols,
+            disparities=window.residual if config.ground_prior else window.disparities,
+            row_step=config.row_step,
+            prior=window.prior if config.ground_prior else None,
+            equalize=config.equalize_subpixel and not config.ground_prior,
+            trim=1,
+        )
+        points = to_vehicle(
+            disparity_to_points(disp, calib, window.rows[0], config.row_step), calib
+        )
+        points = crop_to_patch(
+            points, ahead, size, config.crop_margin, config.height_tolerance, lateral=lateral
+        )
+    else:
+        disp = compute_disparity(
+            left_g,
+            right_g,
+            config.sgbm,
+            row_step=config.row_step,
+            equalize=config.equalize_subpixel,
+        )
+        points = to_vehicle(disparity_to_points(disp, calib, 0, config.row_step), calib)
+    if config.outlier_filter is not None:
+        f = config.outlier_filter
+        points = statistical_outlier_filter(points, f.cell, f.k, f.min_tolerance, f.min_count)
+    log.debug("stereo cloud: %d points", len(points))
+    return points
