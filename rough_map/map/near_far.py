@@ -15,23 +15,31 @@ Steps, per frame
 2. *Features* (:func:`tile_features`): per tile the mean CIE L*a*b* colour and the log of the
    standard deviation of each L*a*b* channel (six numbers). L*a*b* separates brightness
    from chroma, so a grey surface and a brown one differ in a*, b* whatever the exposure of
-   their texture, and a tile's mean and spread hardly depend on how far away it is. Texture
-   descriptors at a fixed pixel scale (LBP, Gabor, gradient energy) were tried and left out:
-   the same ground seen 3 m away shows its texture at half the pixel scale and with its fine
-   detail blurred, so they drift with distance and, learnt at 1 m only, mislead the far
-   field (on the simulated mixed course they cut the far-field accuracy at 2.5-3 m from
-   0.99 to 0.4-0.6; see ``benchmarks/bench_near_far.py``).
+   their texture, and a tile's mean colour hardly depends on how far away it is. Texture
+   descriptors at a fixed pixel scale (LBP, gradient energy) were left out: the same ground
+   seen 3 m away shows its texture at half the pixel scale with its fine detail blurred, so
+   they drift with distance and, learnt at 1 m only, mislead the far field
+   (``benchmarks/bench_near_far.py`` measures both). The log-stds drift too (fine texture
+   fades), so they only get a weak say (``min_std``).
 3. *Update* (:meth:`NearToFar.update`): the tiles whose ground point lies in the patch are
-   one batch of a :class:`sklearn.naive_bayes.GaussianNB` ``partial_fit`` (running per-class
-   means and variances, the classes given up front). Tiles that are outliers within the batch
-   (more than ``outlier_k`` robust standard deviations from the batch median in some feature:
-   a manhole rim, a class boundary) are left out. A probability vector as the near label
-   weights the batch per class.
-4. *Prediction* (:meth:`NearToFar.predict`): class posteriors per tile with equal priors
-   over the classes seen so far, then an *unfamiliarity* gate: if a tile lies far from every
-   learnt class (its smallest squared Mahalanobis distance has a chi-square tail probability
-   below ``novelty_alpha``), its probabilities are pulled towards uniform. Terrain the rover
-   has not driven over yet thus comes out as "unknown", not as the nearest known class.
+   one batch. Outliers within it (more than ``outlier_k`` robust standard deviations from
+   the batch median in some feature: a manhole rim) are dropped, and a patch across a class
+   boundary keeps only its main look (:func:`_main_look`: a two-component Gaussian mixture
+   chosen by BIC). The batch then joins the nearest familiar *look* of its class, or starts
+   a new one (:class:`Looks`: running means and variances, Chan's parallel update). A look
+   is used only once ``min_support`` frames fed it: a wrong geometric label starts a look
+   of its own that stays unused, or light, instead of corrupting the class's main look. A
+   probability vector as the near label feeds every class with its weight.
+4. *Prediction* (:meth:`NearToFar.predict`): ``p(class | tile)`` is proportional to the sum
+   over the class's looks in use of ``n_look * N(features; look)``, ``n_look`` the tiles the
+   look learnt: a mixture over all looks, so a look taught by a few wrong labels weighs
+   little against the same look learnt by its own class (and the class priors follow how
+   much of each class the rover drove over). Then an *unfamiliarity* gate: a tile far from
+   every look in use (its smallest squared Mahalanobis distance has a chi-square tail
+   probability below ``novelty_alpha``) has its probabilities pulled towards uniform.
+   Terrain of a class the rover has not driven over yet thus comes out as "unknown", not as
+   the nearest known class; with ``recall`` its look is remembered and it is predicted once
+   the class is learnt (new terrain is always seen far ahead first).
 5. *Ground cells*: predictions are returned on the world lattice of cell centres
    ``((i + 0.5) * ground_step, (j + 0.5) * ground_step)`` (the lattice of
    :class:`rough_map.map.grid.GridMap` maps of that resolution), for cells in view within
@@ -47,11 +55,12 @@ Pixel ``(u, v)`` = (column, row), integer coordinates at pixel centres.
 
 Limits
 ------
-Flat ground: a tile's ground point is where its ray meets the vehicle's ``z = 0`` plane, so
-slopes and steps displace far predictions (by ``dz / tan(elevation angle)``, about 3 cm per
-cm of height at 3 m). Classes that look alike in colour (different roughness on the same
-material) cannot be told apart by this model; the near field, not the far field, is then the
-only source of their class.
+Only classes the rover has driven over can be predicted, and a far cell of another class is
+"unknown" (uniform) at best. Flat ground: a tile's ground point is where its ray meets the
+vehicle's ``z = 0`` plane, so slopes and steps displace far predictions (by
+``dz / tan(elevation angle)``, about 3 cm per cm of height at 3 m). Classes that look alike
+in colour (different roughness of the same material) cannot be told apart by this model;
+the near field is then the only source of their class.
 """
 
 from __future__ import annotations
@@ -287,8 +296,9 @@ def tile_features(image_bgr: ArrayLike, tile_px: int = 32) -> NDArray[np.float64
     -------
     ndarray, shape (H // tile_px * W // tile_px, 6)
         One row per tile, row-major over the tile grid; columns :data:`FEATURE_NAMES`: mean
-        L* (0-100), a*, b* (about -128..127) of CIE L*a*b* (D65, OpenCV's float conversion of
-        sRGB) and ``log(std + 0.05)`` of each of the three channels (log of L*a*b* units).
+        L* (0-100), a*, b* (about -128..127) of CIE L*a*b* (OpenCV's conversion of BGR
+        scaled to [0, 1]) and ``log(std + 0.05)`` of each of the three channels (log of
+        L*a*b* units).
 
     Raises
     ------
@@ -309,12 +319,15 @@ def tile_features(image_bgr: ArrayLike, tile_px: int = 32) -> NDArray[np.float64
         raise InputError(f"image {image.shape[1]}x{image.shape[0]} px is smaller than one tile")
     crop = image[: n_rows * tile_px, : n_cols * tile_px]
     lab = cv2.cvtColor(crop.astype(np.float32) * np.float32(1.0 / 255.0), cv2.COLOR_BGR2Lab)
-    # Per-tile sums by reshaping: (rows, tile, cols, tile, 3) -> sum over the two tile axes.
-    blocks = lab.reshape(n_rows, tile_px, n_cols, tile_px, 3).astype(np.float64)
-    n = float(tile_px * tile_px)
-    mean = blocks.sum(axis=(1, 3)) / n
-    var = np.maximum((blocks * blocks).sum(axis=(1, 3)) / n - mean * mean, 0.0)
-    out = np.concatenate([mean, np.log(np.sqrt(var) + _STD_FLOOR)], axis=-1)
+    # Block means by area resampling (exact for whole tiles); centred first so that the
+    # float32 second moments keep their precision.
+    centre = np.array(cv2.mean(lab)[:3])
+    lab = cv2.subtract(lab, (*centre, 0.0))
+    size = (n_cols, n_rows)
+    mean = cv2.resize(lab, size, interpolation=cv2.INTER_AREA).astype(np.float64)
+    square = cv2.resize(lab * lab, size, interpolation=cv2.INTER_AREA).astype(np.float64)
+    var = np.maximum(square - mean * mean, 0.0)
+    out = np.concatenate([mean + centre, np.log(np.sqrt(var) + _STD_FLOOR)], axis=-1)
     return out.reshape(n_rows * n_cols, 6)
 
 
@@ -436,9 +449,11 @@ class NearToFar:
     ground_step : float
         Spacing of the ground cells the predictions are given on, m.
     novelty_alpha : float
-        Tiles whose squared Mahalanobis distance to every learnt class has a chi-square tail
-        probability below this are unfamiliar: their probabilities are mixed with the uniform
-        distribution, all the way when the tail probability is 0. 0 disables the test.
+        A tile whose squared Mahalanobis distance to the nearest look in use has a
+        chi-square tail probability ``q`` below this is unfamiliar: its probabilities are
+        mixed with the uniform distribution, with weight ``1 - q / novelty_alpha``. 0
+        disables the gate. A near-field batch joins a look of its class if its mean passes
+        the same test, and starts a new look otherwise.
     outlier_k : float
         Near-field tiles further than this many robust standard deviations (1.4826 MAD) from
         the batch median in some feature are not learnt; ``inf`` learns them all.
@@ -460,6 +475,10 @@ class NearToFar:
         used: a look learnt once may be a wrong geometric label.
     max_looks : int
         Most looks kept per class; the least supported goes first.
+    min_confidence : float
+        Cells whose largest class probability is below this are left out of the
+        predictions: unknown (NaN in a map) rather than a near-uniform row, which a map's
+        evidence fusion would count as seen. 0 keeps every cell in view.
 
     Attributes
     ----------
@@ -486,6 +505,7 @@ class NearToFar:
         memory_cells: int = 50_000,
         min_support: float = 2.0,
         max_looks: int = 8,
+        min_confidence: float = 0.5,
     ) -> None:
         self.classes = tuple(str(c) for c in classes)
         self.tile_px = int(tile_px)
@@ -503,6 +523,7 @@ class NearToFar:
         self.memory_cells = int(memory_cells)
         self.min_support = float(min_support)
         self.max_looks = int(max_looks)
+        self.min_confidence = float(min_confidence)
         self._check_params()
         self._min_var = np.square(np.asarray(self.min_std))[None, :]
         self._geometry_key: tuple[str, int] | None = None
@@ -533,6 +554,8 @@ class NearToFar:
             )
         if not 0.0 <= self.novelty_alpha < 1.0:
             raise InputError(f"novelty_alpha must be in [0, 1), got {self.novelty_alpha}")
+        if not 0.0 <= self.min_confidence <= 1.0:
+            raise InputError(f"min_confidence must be in [0, 1], got {self.min_confidence}")
         if self.max_looks < 1:
             raise InputError(f"max_looks must be at least 1, got {self.max_looks}")
 
@@ -570,7 +593,10 @@ class NearToFar:
                     f"0..{k - 1}"
                 )
             return np.eye(k)[int(arr)]
-        p = arr.astype(float)
+        try:
+            p = arr.astype(float)
+        except (TypeError, ValueError):
+            p = np.full(0, np.nan)
         if p.shape != (k,) or not np.all(np.isfinite(p)) or np.any(p < 0) or p.sum() <= 0:
             raise InputError(
                 f"near probabilities must be {k} non-negative finite numbers (one per class "
@@ -616,6 +642,12 @@ class NearToFar:
         image = _check_image(image_bgr, calib)
         pose_matrix(pose)
         target = self._target(near_label)
+        return self._update_features(tile_features(image, self.tile_px), calib, target)
+
+    def _update_features(
+        self, tiles: NDArray[np.float64], calib: StereoCalibration, target: NDArray[np.float64]
+    ) -> NearToFar:
+        """:meth:`update` from the image's :func:`tile_features`."""
         geometry = self._tiles(calib)
         near = self._in_near(geometry.ground[:, 0], geometry.ground[:, 1])
         if near.sum() < self.min_near_tiles:
@@ -623,8 +655,11 @@ class NearToFar:
                 f"only {int(near.sum())} tiles of {self.tile_px} px see the near field "
                 f"{self.near} m ahead; check the calibration or use smaller tiles"
             )
-        features = tile_features(image, self.tile_px)[near]
+        features = tiles[near]
         features = _main_look(features[_inliers(features, self.outlier_k)], self._min_var)
+        if not len(features):
+            log.debug("near-to-far update skipped: no near-field tile left to learn")
+            return self
         if not hasattr(self, "looks_"):
             self.looks_ = Looks.empty(len(FEATURE_NAMES))
             self.n_updates_ = 0
@@ -708,10 +743,11 @@ class NearToFar:
     def predict_proba_features(self, features: ArrayLike) -> NDArray[np.float64]:
         """Class probabilities of feature rows (:func:`tile_features`).
 
-        Each class's likelihood is the mixture of its looks in use, weighted by the number
-        of tiles each learnt (variances floored at ``min_std ** 2``); equal priors over the
-        classes with a look in use, zero for the others; unfamiliar rows are pulled towards
-        uniform over all classes (see ``novelty_alpha``). Uniform before any look is in use.
+        The looks in use form one Gaussian mixture weighted by the tiles each learnt
+        (variances floored at ``min_std ** 2``); a class's probability is the share of its
+        looks in the mixture's density, zero for classes without a look in use. Unfamiliar
+        rows are pulled towards uniform over all classes (see ``novelty_alpha``). Uniform
+        before any look is in use.
 
         Parameters
         ----------
@@ -742,9 +778,8 @@ class NearToFar:
             return np.full((len(x), k), 1.0 / k)
         cls = self.looks_.cls[used]
         n = self.looks_.n[used]
-        class_n = np.bincount(cls, weights=n, minlength=k)
         loglik = (
-            np.log(n / class_n[cls])[None]
+            np.log(n / n.sum())[None]
             - 0.5 * d2
             - 0.5 * np.log(2.0 * np.pi * var).sum(axis=-1)[None]
         )
@@ -788,8 +823,9 @@ class NearToFar:
         -------
         FarPrediction
             Cells on the ``ground_step`` world lattice within ``max_range`` m, outside the
-            near field, seen by a tile whose ray meets the ground; with ``recall``, followed
-            by the remembered cells that became familiar (``recalled`` true).
+            near field, seen by a tile whose ray meets the ground, with a confidence of at
+            least ``min_confidence``; with ``recall``, followed by the remembered cells that
+            became familiar (``recalled`` true).
 
         Raises
         ------
@@ -802,12 +838,25 @@ class NearToFar:
         transform = pose_matrix(pose)
         if not hasattr(self, "looks_"):
             raise NotFittedError("NearToFar has learnt nothing yet: call update() first")
+        return self._predict_features(
+            tile_features(image, self.tile_px), calib, transform, t=t, frame=frame
+        )
+
+    def _predict_features(
+        self,
+        tiles: NDArray[np.float64],
+        calib: StereoCalibration,
+        transform: NDArray[np.float64],
+        *,
+        t: float | None,
+        frame: int | None,
+    ) -> FarPrediction:
+        """:meth:`predict` from the image's :func:`tile_features` and the 4x4 pose."""
         geometry = self._tiles(calib)
         # Tiles whose centre is a little beyond max_range still cover cells within it.
         with np.errstate(invalid="ignore"):
             usable = np.isfinite(geometry.distance) & (geometry.distance <= self.max_range + 1.0)
-        features = np.full((len(usable), len(FEATURE_NAMES)), np.nan)
-        features[usable] = tile_features(image, self.tile_px)[usable]
+        features = np.where(usable[:, None], tiles, np.nan)
         keys, ahead, lateral, wx, wy, cell_features = self._cells(
             calib, geometry, transform, usable, features
         )
@@ -832,7 +881,7 @@ class NearToFar:
             t=t,
             frame=frame,
             recalled=recalled,
-        )
+        ).select(proba.max(axis=1, initial=0.0) >= self.min_confidence)
 
     def _proba(
         self, features: NDArray[np.float64]
@@ -1075,7 +1124,9 @@ def _main_look(x: NDArray[np.float64], min_var: NDArray[np.float64]) -> NDArray[
     var1 = np.maximum(x.var(axis=0), 1e-12)
     # BIC of one diagonal Gaussian, in closed form: -2 log L + p log n with p = 2 F.
     bic1 = len(x) * np.sum(np.log(2.0 * np.pi * var1) + 1.0) + 2 * x.shape[1] * np.log(len(x))
-    gmm = GaussianMixture(2, covariance_type="diag", random_state=0, reg_covar=1e-6)
+    gmm = GaussianMixture(
+        2, covariance_type="diag", init_params="k-means++", random_state=0, reg_covar=1e-6
+    )
     gmm.fit(x)
     if gmm.bic(x) >= bic1:
         return x
@@ -1124,6 +1175,7 @@ def run_traverse(
     every: int = 1,
     model: NearToFar | None = None,
     classes: Sequence[str] | None = None,
+    progress: bool = False,
     **kwargs: Any,
 ) -> list[FarPrediction]:
     """Run near-to-far along a traverse, learning frame by frame.
@@ -1138,15 +1190,17 @@ def run_traverse(
         With a calibration and left images (colour).
     near_labels : sequence or ndarray
         One geometric near-field label per frame of the traverse (all frames, imaged or not):
-        class names or indices (None where unknown: the frame is not learnt), or an array
-        (n_frames, K) of class probabilities (rows of NaN where unknown).
+        class names or indices (None or "" where unknown: the frame is not learnt), or an
+        array (n_frames, K) of class probabilities (rows of NaN where unknown).
     every : int
         Use every ``every``-th imaged frame.
     model : NearToFar, optional
         A model to continue; by default a new one with ``classes`` and ``kwargs``.
     classes : sequence of str, optional
-        Class names of a new model; by default the class names of the traverse's simulator
-        (:data:`rough_map.simulate.world.CLASS_NAMES`).
+        Class names of a new model; by default the named surfaces of
+        :data:`rough_map.terrain.SURFACES` (the simulator's classes).
+    progress : bool
+        Show a progress bar on stderr.
     **kwargs
         Passed to :class:`NearToFar`.
 
@@ -1168,27 +1222,32 @@ def run_traverse(
     if isinstance(near_labels, np.ndarray) and near_labels.ndim == 2:
         labels: list[Any] = [None if np.any(np.isnan(r)) else r for r in near_labels]
     else:
-        labels = list(near_labels)  # type: ignore[arg-type]
+        labels = [None if isinstance(x, str) and not x else x for x in near_labels]
     if len(labels) != len(traverse):
         raise InputError(
             f"near_labels has {len(labels)} entries but the traverse has {len(traverse)} frames"
         )
     if model is None:
         if classes is None:
-            from rough_map.simulate.world import CLASS_NAMES
+            from rough_map.terrain import SURFACES
 
-            classes = CLASS_NAMES
+            classes = tuple(SURFACES)
         model = NearToFar(classes, **kwargs)
+    from tqdm import tqdm
+
     imaged = [i for i, f in enumerate(traverse.frames) if f.left is not None][::every]
     out: list[FarPrediction] = []
     start = time.perf_counter()
-    for i in imaged:
+    for i in tqdm(imaged, desc="near-to-far", unit="frame", disable=not progress):
         frame = traverse.frames[i]
-        image = _read_bgr(traverse.resolve(frame.left))  # type: ignore[arg-type]
+        path = traverse.resolve(frame.left)  # type: ignore[arg-type]
+        image = _check_image(_read_bgr(path), calib)
+        tiles = tile_features(image, model.tile_px)  # once for predict and update
         if hasattr(model, "looks_"):
-            out.append(model.predict(image, calib, frame.pose, t=frame.t, frame=i))
+            transform = pose_matrix(frame.pose)
+            out.append(model._predict_features(tiles, calib, transform, t=frame.t, frame=i))
         if labels[i] is not None:
-            model.update(image, calib, frame.pose, labels[i])
+            model._update_features(tiles, calib, model._target(labels[i]))
     log.info(
         "near-to-far: %d frames, %d predictions in %.1f s",
         len(imaged),

@@ -130,6 +130,7 @@ def simulate(
     image_every: int = 1,
     sensor: SensorSpec | None = None,
     world_spacing: float = 0.002,
+    width: float = 4.0,
     progress: bool = False,
 ) -> Path:
     """Simulate a traverse of ``course`` and write it to ``out_dir``.
@@ -157,6 +158,8 @@ def simulate(
     world_spacing : float
         Cell size of the world in m. 2 mm keeps the wavelengths that a mean over an 8 mm
         cell folds back into the band; the renderer gets a 4 mm copy.
+    width : float
+        Extent of the world across the course in m (the cameras see about 6 m wide at 3 m).
     progress : bool
         Show a progress bar on stderr.
 
@@ -186,7 +189,7 @@ def simulate(
     (out / "clouds").mkdir(exist_ok=True)
     rng = np.random.default_rng(seed)
     segments, defects = course_layout(course, length, seed)
-    world = build_world(segments, defects, spacing=world_spacing, seed=seed, width=3.0)
+    world = build_world(segments, defects, spacing=world_spacing, seed=seed, width=width)
     save_world(world, out / TRUTH_FILE)
     poses = drive(
         world,

@@ -1,0 +1,254 @@
+"""Near-to-far on simulated traverses: far-field accuracy by distance, area covered, speed.
+
+Run ``python benchmarks/bench_near_far.py --traverse DIR [DIR ...]`` on traverse folders with
+colour images and a ``world_truth.npz`` (``rough-map simulate --out DIR --course mixed
+--length 12 --image-every 2 --seed 1``), or ``--simulate mixed`` to simulate one into a
+temporary folder first (3-10 s a frame). The frames' true labels stand in for the geometric
+classifier's near-field labels (``--flip 0.2`` replaces a share of them with another class
+present on the course).
+
+For each traverse it prints
+
+* the accuracy table of :func:`rough_map.map.near_far.far_field_accuracy` (predictions made
+  with the model learnt from the earlier frames only), at ``--threshold``;
+* the ground area (0.1 m grid, cells of the world only) covered by the near-field patches,
+  by near + confident far cells, and by near + every far cell in view (the ceiling the camera
+  allows): the stock simulator's world is a 3 m wide strip, which caps the ratio at about
+  3.1-3.4; ``--width 6`` simulates a wider world;
+* baselines measured in the same run: the same model without the unfamiliarity gate and
+  recall (``novelty_alpha=0, recall=False, min_support=1, min_confidence=0``: every far cell
+  in view gets the nearest learnt class), and a tile-level comparison of this module's
+  colour features with colour + texture features (uniform LBP histogram, P=8, R=1, and
+  the mean gradient magnitude), both in a plain online Gaussian naive Bayes, on far tiles
+  of classes already learnt;
+* the time per frame: reading the image, tile features, predict, update (wall clock, the
+  median over frames; the load average is printed because other processes slow it down).
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import itertools
+import os
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from rough_map.io.traverse import Traverse, load_traverse
+from rough_map.map import near_far as nf
+from rough_map.simulate.course import TRUTH_FILE, load_world
+from rough_map.simulate.world import CLASS_NAMES
+from rough_map.types import HeightField
+
+
+def simulate(course: str, length: float, image_every: int, seed: int, width: float) -> Path:
+    """Simulate a traverse into a temporary folder; ``width`` (m) of the world strip."""
+    from rough_map.simulate import course as course_module
+    from rough_map.simulate import world as world_module
+
+    out = Path(tempfile.mkdtemp(prefix=f"near_far_{course}_")) / "traverse"
+    if width != 3.0:
+        # simulate() builds a 3 m wide world; widen it for this process only.
+        course_module.build_world = functools.partial(  # type: ignore[assignment]
+            _build_world_width, world_module.build_world, width
+        )
+    course_module.simulate(
+        out, course, length=length, image_every=image_every, seed=seed, world_spacing=0.004
+    )
+    return out
+
+
+def _build_world_width(build, width: float, *args, **kwargs):
+    kwargs["width"] = width
+    return build(*args, **kwargs)
+
+
+def noisy_labels(labels: list[str | None], share: float, seed: int) -> list[str | None]:
+    """Replace ``share`` of the labels by another class present on the course."""
+    rng = np.random.default_rng(seed)
+    present = sorted({x for x in labels if x is not None})
+    out = []
+    for label in labels:
+        if label is not None and len(present) > 1 and rng.random() < share:
+            label = str(rng.choice([c for c in present if c != label]))
+        out.append(label)
+    return out
+
+
+def run(traverse: Traverse, labels: list[str | None], **kwargs: object) -> tuple[list, dict]:
+    """run_traverse with a timing breakdown (s per frame, medians)."""
+    calib = traverse.spec.calibration
+    model = nf.NearToFar(CLASS_NAMES, **kwargs)  # type: ignore[arg-type]
+    times: dict[str, list[float]] = {"read": [], "features": [], "predict": [], "update": []}
+    out = []
+    for i, frame in enumerate(traverse.frames):
+        if frame.left is None:
+            continue
+        t0 = time.perf_counter()
+        image = cv2.imread(str(traverse.resolve(frame.left)), cv2.IMREAD_COLOR)
+        t1 = time.perf_counter()
+        tiles = nf.tile_features(image, model.tile_px)
+        t2 = time.perf_counter()
+        if hasattr(model, "looks_"):
+            transform = nf.pose_matrix(frame.pose)
+            out.append(model._predict_features(tiles, calib, transform, t=frame.t, frame=i))
+            times["predict"].append(time.perf_counter() - t2)
+        t3 = time.perf_counter()
+        if labels[i] is not None:
+            model._update_features(tiles, calib, model._target(labels[i]))
+            times["update"].append(time.perf_counter() - t3)
+        times["read"].append(t1 - t0)
+        times["features"].append(t2 - t1)
+    return out, {k: statistics.median(v) for k, v in times.items() if v}
+
+
+def texture_baseline(traverse: Traverse, world: HeightField, labels: list[str | None]) -> None:
+    """Tile-level accuracy by distance: colour features against colour + texture features."""
+    from skimage.feature import local_binary_pattern
+    from sklearn.naive_bayes import GaussianNB
+
+    calib = traverse.spec.calibration
+    model = nf.NearToFar(CLASS_NAMES)
+    geometry = model._tiles(calib)  # the same tiles as the model
+    n_tiles = geometry.n_rows * geometry.n_cols
+    edges = np.array([0.0, 1.5, 2.0, 3.0, 4.0])
+    sets = {"colour (this module)": None, "colour + LBP + gradient": None}
+    models = {name: GaussianNB() for name in sets}
+    hits = {name: np.zeros(len(edges) - 1) for name in sets}
+    count = np.zeros(len(edges) - 1)
+    seen: set[int] = set()
+    near = model._in_near(geometry.ground[:, 0], geometry.ground[:, 1])
+    for i, frame in enumerate(traverse.frames):
+        if frame.left is None or labels[i] is None:
+            continue
+        image = cv2.imread(str(traverse.resolve(frame.left)), cv2.IMREAD_COLOR)
+        colour = nf.tile_features(image, model.tile_px)
+        gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        codes = local_binary_pattern(gray, 8, 1, "uniform").astype(np.int64)
+        t = model.tile_px
+        codes = codes[: geometry.n_rows * t, : geometry.n_cols * t]
+        tile_index = (np.arange(codes.shape[0]) // t)[:, None] * geometry.n_cols + (
+            np.arange(codes.shape[1]) // t
+        )[None, :]
+        lbp = np.bincount((tile_index * 10 + codes).ravel(), minlength=n_tiles * 10)
+        lbp = lbp.reshape(n_tiles, 10) / (t * t)
+        grad = np.hypot(cv2.Sobel(gray, cv2.CV_32F, 1, 0), cv2.Sobel(gray, cv2.CV_32F, 0, 1))
+        grad = grad[: geometry.n_rows * t, : geometry.n_cols * t]
+        grad = grad.reshape(geometry.n_rows, t, geometry.n_cols, t).mean(axis=(1, 3))
+        texture = np.column_stack([colour, lbp, np.log(grad.reshape(-1, 1) + 1e-3)])
+        features = {"colour (this module)": colour, "colour + LBP + gradient": texture}
+        transform = nf.pose_matrix(frame.pose)
+        ground = geometry.ground @ transform[:3, :3].T + transform[:3, 3]
+        ok = np.isfinite(geometry.distance)
+        truth = np.full(n_tiles, -1)
+        truth[ok] = nf._world_class(world, ground[ok, 0], ground[ok, 1])
+        evaluate = ok & ~near & (truth >= 0) & np.isin(truth, list(seen))
+        b = np.searchsorted(edges, geometry.distance[evaluate], side="right") - 1
+        inside = (b >= 0) & (b < len(count))
+        if seen:
+            np.add.at(count, b[inside], 1)
+            for name, x in features.items():
+                with np.errstate(divide="ignore"):  # log prior of classes not seen yet
+                    pred = models[name].predict(x[evaluate])
+                np.add.at(hits[name], b[inside], (pred == truth[evaluate])[inside])
+        label = CLASS_NAMES.index(labels[i])
+        for name, x in features.items():
+            models[name].partial_fit(
+                x[near], np.full(int(near.sum()), label), classes=np.arange(len(CLASS_NAMES))
+            )
+        seen.add(label)
+    print("  tile accuracy on far tiles of learnt classes, plain Gaussian NB:")
+    bins = " | ".join(f"{a:g}-{b:g} m" for a, b in itertools.pairwise(edges))
+    print(f"  | features | {bins} |")
+    for name in sets:
+        acc = [f"{h / n:.3f}" if n else "-" for h, n in zip(hits[name], count, strict=True)]
+        print(f"  | {name} | " + " | ".join(acc) + " |")
+
+
+def report(path: Path, args: argparse.Namespace) -> None:
+    traverse = load_traverse(path)
+    world = load_world(path / TRUTH_FILE)
+    labels = traverse.labels()
+    if args.flip > 0:
+        labels = noisy_labels(labels, args.flip, seed=0)
+    n_images = sum(f.left is not None for f in traverse.frames)
+    print(f"\n## {traverse.name}: {len(traverse)} frames, {n_images} with images ({path})")
+    preds, times = run(traverse, labels, tile_px=args.tile)
+    table = nf.far_field_accuracy(preds, world, threshold=args.threshold)
+    print(table.to_text())
+    poses = traverse.poses()
+    ours = nf.area_coverage(preds, poses, world, threshold=args.threshold)
+    base_preds, _ = run(
+        traverse,
+        labels,
+        tile_px=args.tile,
+        novelty_alpha=0.0,
+        recall=False,
+        min_support=1,
+        min_confidence=0.0,
+    )
+    ceiling = nf.area_coverage(base_preds, poses, world, threshold=0.0)
+    base = nf.area_coverage(base_preds, poses, world, threshold=args.threshold)
+    base_table = nf.far_field_accuracy(base_preds, world, threshold=args.threshold)
+    print(
+        f"\n  area (m^2, {ours.cell:g} m grid): near {ours.near_area:.2f}; near + far "
+        f"(p >= {args.threshold:g}) {ours.total_area:.2f} = {ours.ratio:.2f} x, fused far "
+        f"accuracy {ours.accuracy:.3f}, far accuracy <= 4 m {table.overall(4.0):.3f}"
+    )
+    print(f"  ceiling (every far cell in view): {ceiling.total_area:.2f} = {ceiling.ratio:.2f} x")
+    print(
+        f"  baseline without gate and recall: {base.total_area:.2f} = {base.ratio:.2f} x, fused "
+        f"far accuracy {base.accuracy:.3f}, far accuracy <= 4 m {base_table.overall(4.0):.3f}"
+    )
+    print(
+        "  time per frame (median, s): "
+        + ", ".join(f"{k} {v:.3f}" for k, v in times.items())
+        + f"; load average {os.getloadavg()[0]:.1f}"
+    )
+    if not args.no_texture:
+        texture_baseline(traverse, world, labels)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--traverse", type=Path, nargs="*", default=[], metavar="DIR")
+    parser.add_argument("--simulate", metavar="COURSE", help="simulate this course first")
+    parser.add_argument("--length", type=float, default=12.0, metavar="M")
+    parser.add_argument("--image-every", type=int, default=2, metavar="N")
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument(
+        "--width",
+        type=float,
+        default=3.0,
+        metavar="M",
+        help="width of the simulated world (the simulator's is 3 m)",
+    )
+    parser.add_argument("--threshold", type=float, default=0.6)
+    parser.add_argument("--tile", type=int, default=32, metavar="PX")
+    parser.add_argument(
+        "--flip",
+        type=float,
+        default=0.0,
+        metavar="SHARE",
+        help="share of near labels replaced by another class",
+    )
+    parser.add_argument("--no-texture", action="store_true", help="skip the LBP baseline")
+    args = parser.parse_args()
+    paths = list(args.traverse)
+    if args.simulate:
+        start = time.perf_counter()
+        paths.append(simulate(args.simulate, args.length, args.image_every, args.seed, args.width))
+        print(f"simulated {args.simulate} in {time.perf_counter() - start:.0f} s")
+    if not paths:
+        parser.error("give --traverse DIR or --simulate COURSE")
+    for path in paths:
+        report(path, args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,334 @@
+"""Near-to-far: projection, the online appearance model, far-field accuracy, bad input."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from rough_map.config import TraverseSpec
+from rough_map.errors import InputError, NotFittedError
+from rough_map.io.stereo import StereoCalibration
+from rough_map.io.traverse import Traverse, save_traverse
+from rough_map.map.near_far import (
+    FarPrediction,
+    NearToFar,
+    area_coverage,
+    far_field_accuracy,
+    ground_to_pixel,
+    pixel_to_ground,
+    pose_matrix,
+    run_traverse,
+    tile_features,
+)
+from rough_map.simulate.world import CLASS_NAMES, build_world, course_layout, drive
+from rough_map.types import HeightField
+
+#: Image scale of the test rig: a quarter of the XB3-like rig renders 16x faster, and tiles of
+#: 8 px then cover the ground of the full rig's 32 px tiles.
+SCALE = 0.25
+TILE = 8
+
+
+def scaled_calibration(scale: float = SCALE) -> StereoCalibration:
+    """The XB3-like rig with its images resized by ``scale`` (same field of view)."""
+    full = StereoCalibration.xb3_default()
+    return StereoCalibration(
+        fx=full.fx * scale,
+        fy=full.fy * scale,
+        cx=(full.cx + 0.5) * scale - 0.5,
+        cy=(full.cy + 0.5) * scale - 0.5,
+        width=round(full.width * scale),
+        height=round(full.height * scale),
+        baseline=full.baseline,
+        camera_to_vehicle=full.camera_to_vehicle,
+    )
+
+
+@pytest.fixture(scope="module")
+def course(tmp_path_factory: pytest.TempPathFactory) -> tuple[Traverse, HeightField]:
+    """A short mixed course (concrete, dirt road, gravel, 2.5 m each), one colour image pair
+    every 0.5 m, rendered at a quarter of the rig's resolution (about 10 s)."""
+    from rough_map.simulate.render import render_stereo
+    from rough_map.simulate.textures import TextureSet
+
+    out = tmp_path_factory.mktemp("near_far_course")
+    (out / "left").mkdir()
+    (out / "right").mkdir()
+    calib = scaled_calibration()
+    segments, defects = course_layout("mixed", 7.5, seed=3)
+    world = build_world(segments, defects, spacing=0.008, seed=3, width=3.0)
+    poses = drive(world, segments[0].start, segments[-1].end - 1.5, seed=3)
+    textures = TextureSet(seed=3)
+    frames = []
+    for i, (t, x, y, z, roll, pitch, yaw) in enumerate(poses[::2]):
+        left, right, _ = render_stereo(
+            world, (x, y, z, roll, pitch, yaw), calib, textures, seed=i, color=True
+        )
+        cv2.imwrite(str(out / f"left/{i:03d}.png"), left)
+        cv2.imwrite(str(out / f"right/{i:03d}.png"), right)
+        col = round((x + math.cos(yaw) - world.origin[0]) / world.spacing)
+        row = round((y + math.sin(yaw) - world.origin[1]) / world.spacing)
+        frames.append(
+            {
+                "t": t,
+                "pose": {"x": x, "y": y, "z": z, "roll": roll, "pitch": pitch, "yaw": yaw},
+                "left": f"left/{i:03d}.png",
+                "right": f"right/{i:03d}.png",
+                "label": world.class_names[world.classes[row, col]],
+            }
+        )
+    spec = TraverseSpec.model_validate(
+        {"schema_version": "1.0", "name": "nf", "calibration": calib.model_dump(), "frames": frames}
+    )
+    save_traverse(spec, out)
+    return Traverse.from_spec(spec, out), world
+
+
+@pytest.fixture(scope="module")
+def predictions(course: tuple[Traverse, HeightField]) -> list[FarPrediction]:
+    traverse, _ = course
+    return run_traverse(traverse, traverse.labels(), tile_px=TILE)
+
+
+def read(traverse: Traverse, i: int) -> np.ndarray:
+    return cv2.imread(str(traverse.resolve(traverse.frames[i].left)), cv2.IMREAD_COLOR)
+
+
+# ------------------------------------------------------------------------------ projection
+
+
+def test_projection_round_trip_flat_ground() -> None:
+    calib = StereoCalibration.xb3_default()
+    rng = np.random.default_rng(0)
+    pose = np.array([3.0, -1.0, 0.2, 0.03, -0.02, 0.7])
+    transform = pose_matrix(pose)
+    # World points on the vehicle's ground plane, 0.5-4 m ahead.
+    vehicle = np.column_stack(
+        [rng.uniform(0.5, 3.0, 200), rng.uniform(-1.0, 1.0, 200), np.zeros(200)]
+    )
+    world = vehicle @ transform[:3, :3].T + transform[:3, 3]
+    # ... into the image and back onto the ground, and back to the world.
+    back_vehicle = (world - transform[:3, 3]) @ transform[:3, :3]
+    u, v = ground_to_pixel(calib, back_vehicle)
+    inside = (u >= 0) & (u < calib.width) & (v >= 0) & (v < calib.height)
+    assert inside.mean() > 0.5
+    ground = pixel_to_ground(calib, u[inside], v[inside])
+    back_world = ground @ transform[:3, :3].T + transform[:3, 3]
+    assert np.max(np.linalg.norm(back_world - world[inside], axis=1)) < 0.01
+
+
+def test_pixel_to_ground_matches_the_renderer_on_flat_ground() -> None:
+    """Ray-cast depth of a flat world against the pinhole/plane intersection."""
+    from rough_map.simulate.render import render_stereo
+
+    calib = scaled_calibration()
+    world = HeightField(np.zeros((600, 600)), 0.01, origin=(-1.0, -3.0))
+    pose = (0.3, 0.1, 0.0, 0.0, 0.0, 0.2)
+    _, _, depth = render_stereo(world, pose, calib, color=False, noise_sigma=0, psf_sigma=0)
+    v, u = np.mgrid[0 : calib.height : 7, 0 : calib.width : 7]
+    z = depth[v, u]
+    ok = np.isfinite(z)
+    cam = np.stack([(u - calib.cx) / calib.fx * z, (v - calib.cy) / calib.fy * z, z], axis=-1)[ok]
+    transform = np.asarray(calib.camera_to_vehicle)
+    truth = cam @ transform[:3, :3].T + transform[:3, 3]
+    ground = pixel_to_ground(calib, u[ok], v[ok])
+    assert np.max(np.linalg.norm(ground - truth, axis=1)) < 0.02  # m, a few cm
+
+
+def test_pixel_above_horizon_gives_nan() -> None:
+    calib = StereoCalibration.xb3_default()
+    tilted = np.asarray(calib.camera_to_vehicle)
+    # A camera looking straight ahead: the top half of the image sees the sky.
+    level = StereoCalibration(
+        **{**calib.model_dump(), "camera_to_vehicle": _level_camera(tilted).tolist()}
+    )
+    ground = pixel_to_ground(level, [640.0, 640.0], [100.0, 900.0])
+    assert np.all(np.isnan(ground[0]))
+    assert np.all(np.isfinite(ground[1]))
+
+
+def _level_camera(transform: np.ndarray) -> np.ndarray:
+    out = transform.copy()
+    out[:3, :3] = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    return out
+
+
+# ------------------------------------------------------------------------------ features, model
+
+
+def _flat_image(calib: StereoCalibration, bgr: tuple[int, int, int], seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    image = np.empty((calib.height, calib.width, 3))
+    image[:] = bgr
+    image += rng.normal(0, 4.0, image.shape)
+    return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+
+GREY, BROWN = (140, 143, 146), (105, 140, 170)
+
+
+def test_tile_features_shape_and_colour() -> None:
+    calib = scaled_calibration()
+    features = tile_features(_flat_image(calib, BROWN, 0), TILE)
+    assert features.shape == ((calib.height // TILE) * (calib.width // TILE), 6)
+    lab = cv2.cvtColor(np.float32([[BROWN]]) / 255.0, cv2.COLOR_BGR2Lab)[0, 0]
+    assert np.allclose(features[:, :3].mean(axis=0), lab, atol=0.5)
+    # Noise of 4 grey levels: L* std about 1.5.
+    assert 0.0 < np.exp(features[:, 3]).mean() < 3.0
+
+
+def test_learns_looks_and_flags_unfamiliar_ones() -> None:
+    calib = scaled_calibration()
+    pose = np.zeros(6)
+    model = NearToFar(CLASS_NAMES, tile_px=TILE, min_confidence=0.0)
+    for seed in range(3):
+        model.update(_flat_image(calib, GREY, seed), calib, pose, "concrete")
+    grey = model.predict(_flat_image(calib, GREY, 10), calib, pose)
+    assert len(grey) > 100
+    assert np.all(grey.label == "concrete")
+    assert grey.confidence.min() > 0.99
+    # A colour never learnt is unknown (uniform), not the nearest known class ...
+    brown = model.predict(_flat_image(calib, BROWN, 11), calib, pose)
+    assert len(brown) == len(grey)
+    assert np.allclose(brown.proba, 1.0 / len(CLASS_NAMES))
+    # ... and left out with the default min_confidence.
+    model.min_confidence = 0.5
+    assert len(model.predict(_flat_image(calib, BROWN, 11), calib, pose)) == 0
+    assert len(model.predict(_flat_image(calib, GREY, 10), calib, pose)) == len(grey)
+    # One wrong label does not overturn three right ones, and is not used alone.
+    model.update(_flat_image(calib, GREY, 12), calib, pose, "gravel")
+    assert np.all(model.predict(_flat_image(calib, GREY, 13), calib, pose).label == "concrete")
+    # Probabilities as the near label: 0.9 dirt road, twice -> the brown look is dirt road.
+    p = np.array([0.0, 0.9, 0.1, 0.0, 0.0])
+    for seed in (14, 15, 16):
+        model.update(_flat_image(calib, BROWN, seed), calib, pose, p)
+    brown = model.predict(_flat_image(calib, BROWN, 17), calib, pose)
+    assert np.all(brown.label == "dirt_road")
+
+
+def test_predictions_are_ground_cells_beyond_the_near_field() -> None:
+    calib = scaled_calibration()
+    pose = np.array([10.0, 5.0, 0.0, 0.0, 0.0, math.pi / 2])  # heading north (+y)
+    model = NearToFar(CLASS_NAMES, tile_px=TILE, max_range=3.0, ground_step=0.2)
+    for seed in range(2):
+        model.update(_flat_image(calib, GREY, seed), calib, pose, "concrete")
+    pred = model.predict(_flat_image(calib, GREY, 5), calib, pose, t=1.5, frame=7)
+    assert (pred.t, pred.frame) == (1.5, 7)
+    assert pred.proba.shape == (len(pred), len(CLASS_NAMES))
+    assert np.allclose(pred.proba.sum(axis=1), 1.0)
+    assert pred.distance.max() <= 3.0
+    assert np.all(pred.ahead > 0)
+    in_patch = (np.abs(pred.ahead - 1.0) <= 0.45) & (np.abs(pred.lateral) <= 0.45)
+    assert not in_patch.any()
+    # World = pose applied to (ahead, lateral): heading +y, so ahead runs along +y.
+    assert np.allclose(pred.x, 10.0 - pred.lateral, atol=1e-6)
+    assert np.allclose(pred.y, 5.0 + pred.ahead, atol=1e-6)
+    # Cell centres on the 0.2 m lattice, one prediction per cell.
+    for coord in (pred.x, pred.y):
+        k = coord / 0.2 - 0.5
+        assert np.allclose(k, np.rint(k), atol=1e-6)
+    assert len({(round(x, 3), round(y, 3)) for x, y in zip(pred.x, pred.y, strict=True)}) == len(
+        pred
+    )
+
+
+# ------------------------------------------------------------------------------ simulated course
+
+
+def test_online_model_improves_as_frames_arrive(course: tuple[Traverse, HeightField]) -> None:
+    """Frame 4 sees concrete, dirt road and gravel; score it with the model after k frames:
+    the share of its cells classified confidently and right, and the mean probability of the
+    true class, grow as concrete (frames 0-3), dirt road (4-7) and gravel (8-) are learnt."""
+    from rough_map.map.near_far import _world_class
+
+    traverse, world = course
+    calib = traverse.spec.calibration
+    image, pose = read(traverse, 4), traverse.frames[4].pose
+    model = NearToFar(CLASS_NAMES, tile_px=TILE, recall=False, min_confidence=0.0)
+    good, p_true = [], []
+    for i in range(len(traverse) - 1):
+        model.update(read(traverse, i), calib, traverse.frames[i].pose, traverse.frames[i].label)
+        if i in (1, 5, len(traverse) - 2):
+            pred = copy.deepcopy(model).predict(image, calib, pose)
+            truth = _world_class(world, pred.x, pred.y)
+            good.append(np.mean((pred.confidence >= 0.6) & (pred.label_index == truth)))
+            p_true.append(pred.proba[np.arange(len(pred)), truth].mean())
+    assert good[0] < good[1] < good[2]
+    assert p_true[0] < p_true[1] < p_true[2]
+    assert good[2] > 0.5
+
+
+def test_far_field_accuracy_and_area(
+    course: tuple[Traverse, HeightField], predictions: list[FarPrediction]
+) -> None:
+    traverse, world = course
+    assert len(predictions) == len(traverse) - 1
+    assert [p.frame for p in predictions] == list(range(1, len(traverse)))
+    table = far_field_accuracy(predictions, world, threshold=0.6)
+    assert table.edges.tolist() == [0, 1.5, 2, 3, 4, 5, 6, 8]
+    assert table.n[:4].sum() > 1000
+    assert table.overall(max_distance=4.0) >= 0.8
+    coverage = area_coverage(predictions, traverse.poses(), world, threshold=0.6)
+    assert coverage.ratio >= 3.0
+    assert coverage.accuracy >= 0.8
+    assert "| 2-3 |" in table.to_text()
+
+
+def test_unknown_near_labels_are_not_learnt(course: tuple[Traverse, HeightField]) -> None:
+    traverse, _ = course
+    assert run_traverse(traverse, [""] * len(traverse), tile_px=TILE) == []
+    labels: list[str | None] = [None] * len(traverse)
+    labels[0] = "concrete"
+    predictions = run_traverse(traverse, np.array(labels, dtype=object), tile_px=TILE)
+    assert len(predictions) == len(traverse) - 1
+
+
+def test_no_peeking(course: tuple[Traverse, HeightField]) -> None:
+    """The prediction of frame k does not depend on the labels of frames k and later."""
+    traverse, _ = course
+    labels = traverse.labels()
+    k = 6
+    changed = labels[:k] + ["ploughed_soil"] * (len(labels) - k)
+    a = run_traverse(traverse, labels, tile_px=TILE, every=2)
+    b = run_traverse(traverse, changed, tile_px=TILE, every=2)
+    for pa, pb in zip(a, b, strict=True):
+        if pa.frame is not None and pa.frame <= k:
+            assert np.array_equal(pa.proba, pb.proba)
+
+
+# ------------------------------------------------------------------------------ bad input
+
+
+def test_bad_input_raises_input_error(course: tuple[Traverse, HeightField]) -> None:
+    traverse, world = course
+    calib = scaled_calibration()
+    image = _flat_image(calib, GREY, 0)
+    model = NearToFar(CLASS_NAMES, tile_px=TILE)
+    with pytest.raises(NotFittedError, match="update"):
+        model.predict(image, calib, np.zeros(6))
+    with pytest.raises(InputError, match="calibration is for 320x240"):
+        model.update(np.zeros((480, 640, 3), np.uint8), calib, np.zeros(6), "concrete")
+    with pytest.raises(InputError, match="unknown class label 'asphalt'"):
+        model.update(image, calib, np.zeros(6), "asphalt")
+    with pytest.raises(InputError, match="unknown class label"):
+        model.update(image, calib, np.zeros(6), 7)
+    with pytest.raises(InputError, match="5 non-negative"):
+        model.update(image, calib, np.zeros(6), [0.5, 0.5])
+    with pytest.raises(InputError, match="BGR"):
+        model.update(image[..., 0], calib, np.zeros(6), "concrete")
+    with pytest.raises(InputError, match="pose"):
+        model.update(image, calib, np.zeros(5), "concrete")
+    with pytest.raises(InputError, match="max_range"):
+        NearToFar(CLASS_NAMES, max_range=1.0)
+    with pytest.raises(InputError, match="distinct"):
+        NearToFar(["a", "a"])
+    with pytest.raises(InputError, match="near_labels has 2 entries"):
+        run_traverse(traverse, ["concrete", "gravel"])
+    with pytest.raises(InputError, match="bins"):
+        far_field_accuracy([], world, bins=(2.0, 1.0))
+    with pytest.raises(InputError, match="proba"):
+        FarPrediction(*(np.zeros(3),) * 5, proba=np.zeros((3, 2)), classes=("a", "b", "c"))
