@@ -153,6 +153,7 @@ def _whole_story(args: argparse.Namespace, t0: float) -> int:
         seed=args.seed,
         images=True,
         image_every=args.image_every,
+        width=6.0,
         progress=args.progress,
     )
     trav = load_traverse(trav_dir)

@@ -32,6 +32,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
+        "--width",
+        type=float,
+        default=4.0,
+        metavar="M",
+        help="width of the terrain across the course in m (default 4)",
+    )
+    p.add_argument(
         "--no-images", action="store_true", help="skip rendering the stereo pairs (much faster)"
     )
     p.add_argument(
@@ -71,6 +78,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         images=not args.no_images,
         image_every=args.image_every,
+        width=args.width,
         sensor=sensor,
         progress=args.progress,
     )

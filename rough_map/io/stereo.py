@@ -298,12 +298,29 @@ class StereoConfig(BaseModel):
     outlier_filter : OutlierFilterConfig or None
         The statistical moving-window filter; ``None`` disables it.
     height_tolerance : float
-        Heights in m above or below the vehicle's ground plane (z = 0) that the patch path
-        still sees: the row band and the disparity range cover ``z = +-height_tolerance``.
+        Heights in m above and below the expected ground (the vehicle's ``z = 0``, or the
+        level ground under an IMU tilt) that the patch path searches: the coarse pass
+        (:func:`fit_ground`) looks for the ground there, and without it (``fit_ground``
+        off, or a failed fit) the full-resolution pass does.
+    fit_ground : bool
+        Patch path with ``ground_prior``: fit the ground plane under the patch in a coarse
+        pass, then match at full resolution around that plane only, over the relief the
+        coarse pass found (a fraction of ``height_tolerance``).
+    coarse_scale : int
+        Binning of the coarse pass's images, each way.
+    band_margin : float
+        Margin in m added to the relief (0.2th-99.8th percentile of the coarse heights
+        above the fitted plane) for the fine search.
+    min_band : float
+        Smallest height, m, searched above and below the fitted plane.
     crop_margin : float
         Margin in m around the patch footprint kept in the returned cloud.
     margin_px : int
-        Extra image rows kept on each side of the patch's row band, px.
+        Extra image rows and columns kept on each side of the patch's window, px.
+    col_step : int
+        Patch path: emit the points of every ``col_step``-th image column only (matching is
+        still at full resolution). Fewer points make the outlier filter and the gridding
+        cheaper.
     row_step : int
         Image rows averaged into one before matching (vertical binning, see
         :func:`compute_disparity`), in both paths. 2 is about 1.5x faster and keeps the
@@ -321,9 +338,14 @@ class StereoConfig(BaseModel):
 
     sgbm: SGBMConfig = Field(default_factory=SGBMConfig)
     outlier_filter: OutlierFilterConfig | None = Field(default_factory=OutlierFilterConfig)
-    height_tolerance: float = Field(0.15, ge=0)
+    height_tolerance: float = Field(0.25, ge=0)
+    fit_ground: bool = True
+    coarse_scale: int = Field(4, ge=2, le=8)
+    band_margin: float = Field(0.015, ge=0)
+    min_band: float = Field(0.025, ge=0)
     crop_margin: float = Field(0.05, ge=0)
     margin_px: int = Field(8, ge=0)
+    col_step: int = Field(1, ge=1, le=4)
     row_step: int = Field(1, ge=1, le=8)
     ground_prior: bool = True
     equalize_subpixel: bool = True
@@ -401,6 +423,83 @@ def _check_pair(
     return left_g, right_g
 
 
+def _sgbm_raw(
+    left_g: np.ndarray,
+    right_g: np.ndarray,
+    config: SGBMConfig,
+    rows: tuple[int, int],
+    cols: tuple[int, int],
+    disparities: tuple[int, int],
+    row_step: int,
+    prior: tuple[float, float, float] | None,
+) -> np.ndarray:
+    """OpenCV's raw SGBM output (int16, 1/16 px) for the rows and columns asked for.
+
+    The arguments are those of :func:`compute_disparity`, checked (gray images, ``rows`` and
+    ``cols`` inside them, ``disparities[1]`` a multiple of 16). Returns shape
+    ``(ceil((r1 - r0) / row_step), c1 - c0)``; invalid pixels hold ``(min_d - 1) * 16``.
+    """
+    import cv2
+
+    height, width = left_g.shape
+    r0, r1 = rows
+    c0, c1 = cols
+    min_d, num_d = disparities
+    max_d = min_d + num_d - 1
+    n_out = -(-(r1 - r0) // row_step)
+    r1_full = r0 + n_out * row_step  # may pass the image bottom: padded below
+    # Widen the band by 2 blocks (of binned rows) each way, in whole groups of row_step rows.
+    b0 = r0 - row_step * min(r0 // row_step, 2 * config.blockSize)
+    b1 = min(height, r1_full + row_step * 2 * config.blockSize)
+    b1 -= (b1 - b0) % row_step
+    # Left pixels can only match once u - max_d >= 0: keep that much image left of c0, and
+    # with negative disparities (residuals) |min_d| right of c1.
+    a0 = max(0, c0 - max(max_d, 0) - config.blockSize)
+    a1 = min(width, c1 + max(-min_d, 0) + config.blockSize)
+    left_band = left_g[b0:b1, a0:a1]
+    if prior is None:
+        right_band = right_g[b0:b1, a0:a1]
+    else:
+        # right_w(u, v) = right(u - d0(u, v), v): a match at residual r means d = r + d0(u - r).
+        # d0 is affine in (u, v), so the resampling is an affine warp (bicubic).
+        a, b, c = prior
+        warp = np.array([[1.0 - a, -b, (1.0 - a) * a0 - b * b0 - c], [0.0, 1.0, float(b0)]])
+        right_band = cv2.warpAffine(
+            right_g,
+            warp,
+            (a1 - a0, b1 - b0),
+            flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0,
+        )
+    if row_step > 1:
+        size = (a1 - a0, (b1 - b0) // row_step)
+        left_band = cv2.resize(left_band, size, interpolation=cv2.INTER_AREA)
+        right_band = cv2.resize(right_band, size, interpolation=cv2.INTER_AREA)
+    matcher = cv2.StereoSGBM.create(
+        minDisparity=min_d,
+        numDisparities=num_d,
+        blockSize=config.blockSize,
+        P1=config.P1,
+        P2=config.P2,
+        disp12MaxDiff=config.disp12MaxDiff,
+        preFilterCap=config.preFilterCap,
+        uniquenessRatio=config.uniquenessRatio,
+        speckleWindowSize=config.speckleWindowSize,
+        speckleRange=config.speckleRange,
+        mode=_SGBM_MODES[config.mode],
+    )
+    raw = matcher.compute(np.ascontiguousarray(left_band), np.ascontiguousarray(right_band))
+    first = (r0 - b0) // row_step
+    return raw[first : first + n_out, c0 - a0 : c1 - a0]
+
+
+def _disparity_range(config: SGBMConfig, disparities: tuple[int, int] | None) -> tuple[int, int]:
+    if disparities is None:
+        return config.minDisparity, config.numDisparities
+    return int(disparities[0]), 16 * max(1, math.ceil(disparities[1] / 16))
+
+
 def compute_disparity(
     left: np.ndarray,
     right: np.ndarray,
@@ -465,68 +564,21 @@ def compute_disparity(
     InputError
         Images of different sizes or not 8-bit, or a band outside the image.
     """
-    import cv2
-
     config = config or SGBMConfig()
     left_g, right_g = _check_pair(left, right, None)
     height, width = left_g.shape
     r0, r1 = (0, height) if rows is None else (int(rows[0]), int(rows[1]))
     if not 0 <= r0 < r1 <= height:
         raise InputError(f"rows must satisfy 0 <= r0 < r1 <= {height}, got ({r0}, {r1})")
-    min_d, num_d = (
-        (config.minDisparity, config.numDisparities)
-        if disparities is None
-        else (int(disparities[0]), 16 * max(1, math.ceil(disparities[1] / 16)))
-    )
+    min_d, num_d = _disparity_range(config, disparities)
     max_d = min_d + num_d - 1
     c0, c1 = (0, width) if cols is None else (int(cols[0]), int(cols[1]))
     if not 0 <= c0 < c1 <= width:
         raise InputError(f"cols must satisfy 0 <= c0 < c1 <= {width}, got ({c0}, {c1})")
     if row_step < 1:
         raise InputError(f"row_step must be >= 1, got {row_step}")
-
     n_out = -(-(r1 - r0) // row_step)
-    r1_full = r0 + n_out * row_step  # may pass the image bottom: padded below
-    # Widen the band by 2 blocks (of binned rows) each way, in whole groups of row_step rows.
-    b0 = r0 - row_step * min(r0 // row_step, 2 * config.blockSize)
-    b1 = min(height, r1_full + row_step * 2 * config.blockSize)
-    b1 -= (b1 - b0) % row_step
-    # Left pixels can only match once u - max_d >= 0: keep that much image left of c0, and
-    # with negative disparities (residuals) |min_d| right of c1.
-    a0 = max(0, c0 - max(max_d, 0) - config.blockSize)
-    a1 = min(width, c1 + max(-min_d, 0) + config.blockSize)
-    left_band = left_g[b0:b1, a0:a1]
-    if prior is None:
-        right_band = right_g[b0:b1, a0:a1]
-    else:
-        # right_w(u, v) = right(u - d0(u, v), v): a match at residual r means d = r + d0(u - r).
-        u = np.arange(a0, a1, dtype=np.float64)[None, :]
-        v = np.arange(b0, b1, dtype=np.float64)[:, None]
-        map_x = (u - (prior[0] * u + prior[1] * v + prior[2])).astype(np.float32)
-        map_y = np.ascontiguousarray(np.broadcast_to(v.astype(np.float32), map_x.shape))
-        right_band = cv2.remap(
-            right_g, map_x, map_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_CONSTANT, borderValue=0
-        )
-    if row_step > 1:
-        size = (a1 - a0, (b1 - b0) // row_step)
-        left_band = cv2.resize(left_band, size, interpolation=cv2.INTER_AREA)
-        right_band = cv2.resize(right_band, size, interpolation=cv2.INTER_AREA)
-    matcher = cv2.StereoSGBM.create(
-        minDisparity=min_d,
-        numDisparities=num_d,
-        blockSize=config.blockSize,
-        P1=config.P1,
-        P2=config.P2,
-        disp12MaxDiff=config.disp12MaxDiff,
-        preFilterCap=config.preFilterCap,
-        uniquenessRatio=config.uniquenessRatio,
-        speckleWindowSize=config.speckleWindowSize,
-        speckleRange=config.speckleRange,
-        mode=_SGBM_MODES[config.mode],
-    )
-    raw = matcher.compute(np.ascontiguousarray(left_band), np.ascontiguousarray(right_band))
-    first = (r0 - b0) // row_step
-    raw = raw[first : first + n_out, c0 - a0 : c1 - a0]
+    raw = _sgbm_raw(left_g, right_g, config, (r0, r1), (c0, c1), (min_d, num_d), row_step, prior)
     band = raw.astype(np.float32) * np.float32(1.0 / 16.0)
     band[raw < min_d * 16] = np.nan
     if trim > 0:
@@ -606,6 +658,10 @@ def equalize_subpixel(disp: np.ndarray, min_span: float = 16.0) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 
+#: A plane ``z = a x + b y + c`` of the vehicle frame, m.
+Plane = tuple[float, float, float]
+
+
 @dataclass(frozen=True)
 class PatchWindow:
     """The part of the left image, and the disparities, that can see the patch of interest.
@@ -619,9 +675,17 @@ class PatchWindow:
     disparities : (int, int)
         ``(minDisparity, numDisparities)`` in px, ``numDisparities`` a multiple of 16.
     prior : (float, float, float)
-        Disparity of the flat ground ``d0(u, v) = a u + b v + c``, px (:func:`ground_disparity`).
+        Disparity of the ground plane ``d0(u, v) = a u + b v + c``, px
+        (:func:`ground_disparity`).
     residual : (int, int)
-        ``(minDisparity, numDisparities)`` of ``d - d0`` over the window, px.
+        ``(minDisparity, numDisparities)`` of ``d - d0`` over the window, px. When
+        ``numDisparities`` is rounded up to a multiple of 16, the slack is shared between both
+        ends of the range.
+    plane : (float, float, float)
+        The ground plane ``z = a x + b y + c`` of the vehicle frame (m) the window is built
+        around.
+    band : (float, float)
+        Heights ``(lo, hi)`` in m above that plane the window sees, ``lo < 0 < hi``.
     """
 
     rows: tuple[int, int]
@@ -629,6 +693,25 @@ class PatchWindow:
     disparities: tuple[int, int]
     prior: tuple[float, float, float]
     residual: tuple[int, int]
+    plane: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    band: tuple[float, float] = (-0.15, 0.15)
+
+
+def level_plane(roll: float = 0.0, pitch: float = 0.0, ground_z: float = 0.0) -> Plane:
+    """The level ground seen from a tilted vehicle: ``z = a x + b y + c`` in the vehicle frame.
+
+    The vehicle -> level rotation is ``Ry(pitch) Rx(roll)`` (as
+    :func:`rough_map.patch.rotation_matrix`, pitch positive nose down, roll positive left side
+    up); the level ground is the plane ``ground_z`` m above the vehicle origin in the level
+    frame. With no tilt it is ``z = ground_z``.
+    """
+    cr, sr = math.cos(roll), math.sin(roll)
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    # Third row of Ry(pitch) Rx(roll): the level frame's z axis in vehicle coordinates.
+    nx, ny, nz = -sp, cp * sr, cp * cr
+    if nz <= 0.1:
+        raise InputError(f"roll {roll} rad and pitch {pitch} rad tilt the vehicle too far")
+    return (-nx / nz, -ny / nz, ground_z / nz)
 
 
 def patch_window(
@@ -638,17 +721,19 @@ def patch_window(
     ground_z: float = 0.0,
     *,
     lateral: float = 0.0,
-    height_tolerance: float = 0.15,
+    height_tolerance: float | tuple[float, float] = 0.15,
     crop_margin: float = 0.05,
     margin_px: int = 8,
+    plane: Plane | None = None,
+    clip: bool = False,
 ) -> PatchWindow:
     """Image rows, columns and disparities that see the patch of interest.
 
     The patch is the square ``|x - ahead| <= size/2``, ``|y - lateral| <= size/2`` of the
-    vehicle frame widened by ``crop_margin``, on flat ground at
-    ``z = ground_z +- height_tolerance``. The eight corners of that box are projected into the
-    left image; a box projects inside the convex hull of its corners, so their extremes bound
-    it.
+    vehicle frame widened by ``crop_margin``, on the ground plane (``z = ground_z``, or
+    ``plane``) widened by ``height_tolerance``. The eight corners of that box are projected into
+    the left image; a box projects inside the convex hull of its corners, so their extremes
+    bound it.
 
     Parameters
     ----------
@@ -659,15 +744,23 @@ def patch_window(
     size : float
         Side of the patch, m.
     ground_z : float
-        Height of the ground in the vehicle frame, m.
+        Height of flat ground in the vehicle frame, m; ignored if ``plane`` is given.
     lateral : float
         Offset of the patch centre to the left (+y), m.
-    height_tolerance : float
-        Height band around ``ground_z`` the window must still see, m.
+    height_tolerance : float or (float, float)
+        Heights above and below the ground the window must still see, m: ``t`` for
+        ``-t..+t``, or ``(lo, hi)``.
     crop_margin : float
         Margin around the patch, m.
     margin_px : int
         Extra rows and columns on each side, px.
+    plane : (float, float, float), optional
+        Ground plane ``z = a x + b y + c`` of the vehicle frame (m), e.g.
+        :func:`level_plane` of the IMU's tilt, or the plane fitted by the patch path's
+        coarse pass.
+    clip : bool
+        Clip the window to the images instead of raising when the box leaves them (the
+        patch itself, on the ground, must still be inside).
 
     Returns
     -------
@@ -679,12 +772,19 @@ def patch_window(
         The patch is behind the camera or not entirely inside both images.
     """
     half = size / 2.0 + crop_margin
+    if isinstance(height_tolerance, tuple | list):
+        lo, hi = float(height_tolerance[0]), float(height_tolerance[1])
+    else:
+        lo, hi = -float(height_tolerance), float(height_tolerance)
+    if not lo <= 0 <= hi:
+        raise InputError(f"the height band must contain 0 (the ground), got ({lo}, {hi}) m")
+    pa, pb, pc = (0.0, 0.0, float(ground_z)) if plane is None else map(float, plane)
     corners = np.array(
         [
-            [ahead + sx * half, lateral + sy * half, ground_z + sz * height_tolerance]
-            for sx in (-1, 1)
-            for sy in (-1, 1)
-            for sz in (-1, 1)
+            [x, y, pa * x + pb * y + pc + dz]
+            for x in (ahead - half, ahead + half)
+            for y in (lateral - half, lateral + half)
+            for dz in (lo, 0.0, hi)
         ]
     )
     transform = calib.T_vehicle_camera
@@ -694,20 +794,23 @@ def patch_window(
     u = calib.fx * cam[:, 0] / cam[:, 2] + calib.cx
     v = calib.fy * cam[:, 1] / cam[:, 2] + calib.cy
     d = calib.focal_baseline / cam[:, 2]
-    if u.min() < 0 or u.max() > calib.width - 1 or v.min() < 0 or v.max() > calib.height - 1:
+    # With clip, only the ground corners (dz = 0) must be inside the images.
+    check = np.arange(len(u)) % 3 == 1 if clip else slice(None)
+    uc, vc, dc = u[check], v[check], d[check]
+    if uc.min() < 0 or uc.max() > calib.width - 1 or vc.min() < 0 or vc.max() > calib.height - 1:
         raise InputError(
             f"the patch of interest ({size:g} m square, {ahead:g} m ahead) is not inside the "
-            f"left image: it spans u {u.min():.0f}..{u.max():.0f}, v {v.min():.0f}..{v.max():.0f}"
+            f"left image: it spans u {uc.min():.0f}..{uc.max():.0f}, "
+            f"v {vc.min():.0f}..{vc.max():.0f}"
         )
-    if (u - d).min() < 0:
+    if (uc - dc).min() < 0:
         raise InputError(
             "the patch of interest is not inside the right image (u - d reaches "
-            f"{(u - d).min():.0f} px)"
+            f"{(uc - dc).min():.0f} px)"
         )
-    prior = ground_disparity(calib, ground_z)
+    prior = ground_disparity(calib, plane=(pa, pb, pc))
     r = d - (prior[0] * u + prior[1] * v + prior[2])
-    min_r = math.floor(r.min()) - 2
-    residual = (min_r, 16 * math.ceil((math.ceil(r.max()) + 2 - min_r) / 16))
+    residual = _search_range(math.floor(r.min()) - 2, math.ceil(r.max()) + 2)
     rows = (
         max(0, math.floor(v.min()) - margin_px),
         min(calib.height, math.ceil(v.max()) + 1 + margin_px),
@@ -716,21 +819,36 @@ def patch_window(
         max(0, math.floor(u.min()) - margin_px),
         min(calib.width, math.ceil(u.max()) + 1 + margin_px),
     )
-    min_d = max(0, math.floor(d.min()) - 2)
-    num_d = 16 * math.ceil((math.ceil(d.max()) + 2 - min_d) / 16)
+    disparities = _search_range(max(0, math.floor(d.min()) - 2), math.ceil(d.max()) + 2)
     return PatchWindow(
-        rows=rows, cols=cols, disparities=(min_d, num_d), prior=prior, residual=residual
+        rows=rows,
+        cols=cols,
+        disparities=(max(0, disparities[0]), disparities[1]),
+        prior=prior,
+        residual=residual,
+        plane=(pa, pb, pc),
+        band=(lo, hi),
     )
 
 
-def ground_disparity(calib: StereoCalibration, ground_z: float = 0.0) -> tuple[float, float, float]:
-    """Disparity of the plane ``z = ground_z`` of the vehicle frame, ``d0 = a u + b v + c``.
+def _search_range(lo: int, hi: int) -> tuple[int, int]:
+    """``(minDisparity, numDisparities)`` covering ``lo..hi`` px, the rounding up of
+    ``numDisparities`` to a multiple of 16 shared between both ends."""
+    num = 16 * math.ceil((hi - lo) / 16)
+    return lo - (num - (hi - lo)) // 2, num
 
-    A left-camera ray through pixel ``(u, v)`` with unit depth has vehicle-frame direction
-    ``R (xn, yn, 1)``, ``xn = (u - cx) / fx``, ``yn = (v - cy) / fy``; it meets the plane at
-    depth ``Z = (ground_z - t_z) / r_z`` with ``r_z = R[2] . (xn, yn, 1)``, so
-    ``d0 = fx B / Z`` is affine in ``(u, v)``. Pixels looking above the horizon get
-    ``d0 <= 0``.
+
+def ground_disparity(
+    calib: StereoCalibration, ground_z: float = 0.0, *, plane: Plane | None = None
+) -> tuple[float, float, float]:
+    """Disparity of a ground plane of the vehicle frame, ``d0 = a u + b v + c``.
+
+    The plane is ``z = ground_z``, or ``z = pa x + pb y + pc`` if ``plane = (pa, pb, pc)``,
+    i.e. ``g . p = pc`` with ``g = (-pa, -pb, 1)``. A left-camera ray through pixel ``(u, v)``
+    with unit depth has vehicle-frame direction ``m = R (xn, yn, 1)``, ``xn = (u - cx) / fx``,
+    ``yn = (v - cy) / fy``, from the camera centre ``t``; it meets the plane at depth
+    ``Z = (pc - g . t) / (g . m)``, so ``d0 = fx B / Z`` is affine in ``(u, v)``. Pixels
+    looking above the horizon get ``d0 <= 0``.
 
     Returns
     -------
@@ -738,11 +856,13 @@ def ground_disparity(calib: StereoCalibration, ground_z: float = 0.0) -> tuple[f
         ``(a, b, c)``: px per px of u, px per px of v, px.
     """
     transform = calib.T_vehicle_camera
-    height = ground_z - transform[2, 3]
+    pa, pb, pc = (0.0, 0.0, float(ground_z)) if plane is None else map(float, plane)
+    g = np.array([-pa, -pb, 1.0])
+    height = pc - float(g @ transform[:3, 3])
     if height >= 0:
-        raise InputError(f"the camera must be above the ground (ground_z={ground_z} m)")
+        raise InputError(f"the camera must be above the ground (ground plane z = {pc} m)")
     k = calib.focal_baseline / height
-    r20, r21, r22 = transform[2, :3]
+    r20, r21, r22 = g @ transform[:3, :3]
     a = k * r20 / calib.fx
     b = k * r21 / calib.fy
     c = k * (r22 - r20 * calib.cx / calib.fx - r21 * calib.cy / calib.fy)
@@ -828,6 +948,226 @@ def to_vehicle(points: np.ndarray, calib: StereoCalibration) -> np.ndarray:
     return out
 
 
+def _reprojection(
+    calib: StereoCalibration,
+    origin: tuple[float, float],
+    steps: tuple[float, float],
+    prior: tuple[float, float, float] | None,
+) -> np.ndarray:
+    """4x4 ``Q`` for ``cv2.reprojectImageTo3D`` from raw SGBM output straight to the vehicle.
+
+    Pixel ``(j, i)`` of the raw map is image pixel ``u = u0 + su j``, ``v = v0 + sv i``
+    (``origin = (u0, v0)``, ``steps = (su, sv)``); its value is ``16 r``, ``r`` the matched
+    disparity, or the residual to ``prior`` (then ``d = r + d0(u - r, v)``). Every step, from
+    ``(j, i, 16 r)`` to ``(u, v, d)``, to the camera frame, to the vehicle frame, is linear in
+    homogeneous coordinates, so one matrix does all: one pass, no float64 temporaries.
+    """
+    u0, v0 = origin
+    su, sv = steps
+    pa, pb, pc = prior if prior is not None else (0.0, 0.0, 0.0)
+    to_image = np.array(
+        [
+            [su, 0.0, 0.0, u0],
+            [0.0, sv, 0.0, v0],
+            [pa * su, pb * sv, (1.0 - pa) / 16.0, pa * u0 + pb * v0 + pc],
+            [0.0, 0.0, 0.0, 1.0],
+        ]
+    )
+    ratio = calib.fx / calib.fy
+    to_camera = np.array(
+        [
+            [1.0, 0.0, 0.0, -calib.cx],
+            [0.0, ratio, 0.0, -calib.cy * ratio],
+            [0.0, 0.0, 0.0, calib.fx],
+            [0.0, 0.0, 1.0 / calib.baseline, 0.0],
+        ]
+    )
+    return calib.T_vehicle_camera @ to_camera @ to_image
+
+
+def _window_cloud(
+    raw: np.ndarray,
+    calib: StereoCalibration,
+    window: PatchWindow,
+    search: tuple[int, int],
+    *,
+    ahead: float,
+    half: float,
+    lateral: float,
+    trim: int = 1,
+    row_step: int = 1,
+    col_step: int = 1,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Vehicle-frame points of raw SGBM output over the window's box: ``x, y, z`` and the
+    height ``dz`` above the window's plane, float32 columns.
+
+    Keeps the pixels matched inside ``search`` (``(minDisparity, numDisparities)``) less
+    ``trim`` px at each end, whose point lies over the footprint ``|x - ahead|, |y - lateral|
+    <= half`` and within the window's ``band`` of its ``plane``. ``col_step`` keeps every
+    ``col_step``-th column only.
+    """
+    import cv2
+
+    if col_step > 1:
+        raw = raw[:, ::col_step]
+    raw = np.ascontiguousarray(raw)
+    min_d, num_d = search
+    q = _reprojection(
+        calib,
+        (window.cols[0], window.rows[0] + 0.5 * (row_step - 1)),
+        (col_step, row_step),
+        window.prior,
+    )
+    x, y, z = cv2.split(cv2.reprojectImageTo3D(raw, q))
+    keep = (raw >= 16 * (min_d + trim)) & (raw <= 16 * (min_d + num_d - 1 - trim))
+    keep &= np.abs(x - np.float32(ahead)) <= np.float32(half)
+    keep &= np.abs(y - np.float32(lateral)) <= np.float32(half)
+    pa, pb, pc = (np.float32(v) for v in window.plane)
+    lo, hi = window.band
+    dz = z - pa * x - pb * y - pc
+    keep &= (dz >= np.float32(lo)) & (dz <= np.float32(hi))
+    return x[keep], y[keep], z[keep], dz[keep]
+
+
+def _scaled(calib: StereoCalibration, scale: int) -> StereoCalibration:
+    """The rig seen through images binned ``scale`` x ``scale`` (pixel centres kept)."""
+    return calib.model_copy(
+        update={
+            "fx": calib.fx / scale,
+            "fy": calib.fy / scale,
+            "cx": (calib.cx + 0.5) / scale - 0.5,
+            "cy": (calib.cy + 0.5) / scale - 0.5,
+            "width": calib.width // scale,
+            "height": calib.height // scale,
+        }
+    )
+
+
+def _fit_plane(points: np.ndarray, centre: tuple[float, float]) -> tuple[Plane, np.ndarray]:
+    """Robust least-squares plane ``z = a x + b y + c`` (iteratively trimmed at 3 sigma, sigma
+    from the MAD); returns it and the heights of all points above it."""
+    x = points[:, 0].astype(np.float64) - centre[0]
+    y = points[:, 1].astype(np.float64) - centre[1]
+    z = points[:, 2].astype(np.float64)
+    keep = np.ones(len(z), dtype=bool)
+    coef = np.zeros(3)
+    res = z
+    for _ in range(5):
+        xs, ys, zs = x[keep], y[keep], z[keep]
+        # 3x3 normal equations from elementwise sums: dot products would go through BLAS,
+        # whose threads cost more than the arithmetic (and spin on a busy machine).
+        sxy = float((xs * ys).sum())
+        sx, sy = float(xs.sum()), float(ys.sum())
+        ata = np.array(
+            [
+                [float((xs * xs).sum()), sxy, sx],
+                [sxy, float((ys * ys).sum()), sy],
+                [sx, sy, float(len(zs))],
+            ]
+        )
+        atb = np.array([float((xs * zs).sum()), float((ys * zs).sum()), float(zs.sum())])
+        coef = np.linalg.solve(ata, atb)
+        res = z - (coef[0] * x + coef[1] * y + coef[2])
+        kept = res[keep]
+        sigma = 1.4826 * float(np.median(np.abs(kept - np.median(kept))))
+        new = np.abs(res) <= max(3.0 * sigma, 0.005)
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    a, b, c = (float(v) for v in coef)
+    return (a, b, c - a * centre[0] - b * centre[1]), res
+
+
+def fit_ground(
+    left: np.ndarray,
+    right: np.ndarray,
+    calib: StereoCalibration,
+    config: StereoConfig | None = None,
+    *,
+    ahead: float = PATCH_AHEAD,
+    size: float = PATCH_SIZE,
+    lateral: float = 0.0,
+    plane: Plane | None = None,
+) -> tuple[Plane, tuple[float, float]] | None:
+    """The coarse pass of the patch path: the ground plane under the patch and its relief.
+
+    SGM on the pair binned ``config.coarse_scale`` times each way, over the patch and
+    ``config.height_tolerance`` m above and below ``plane`` (default ``z = 0``, or e.g.
+    :func:`level_plane` of the IMU's tilt), on the residual to that plane's disparity. A plane
+    is fitted to the points over the patch footprint (least squares, trimmed at 3 robust
+    sigma), and the heights above it of the points, 0.2th to 99.8th percentile, widened by
+    ``config.band_margin`` and to at least ``+-config.min_band``, give the band the fine pass
+    searches. The binned images are 16x cheaper to match and the coarse band needs a quarter
+    of the disparities: a few ms.
+
+    Parameters
+    ----------
+    left, right : ndarray of uint8
+        Rectified pair, gray or BGR.
+    calib : StereoCalibration
+        The rig.
+    config : StereoConfig, optional
+        Settings; defaults to ``StereoConfig()``.
+    ahead, size, lateral : float
+        The patch, m (see :func:`stereo_to_cloud`).
+    plane : (float, float, float), optional
+        Expected ground ``z = a x + b y + c`` in the vehicle frame, m.
+
+    Returns
+    -------
+    ((float, float, float), (float, float)) or None
+        The plane ``(a, b, c)`` and the height band ``(lo, hi)`` in m around it; None when
+        fewer than 10 % of the patch's coarse pixels matched (no texture, occlusion).
+    """
+    import cv2
+
+    config = config or StereoConfig()
+    left_g, right_g = _check_pair(left, right, calib)
+    scale = config.coarse_scale
+    small = _scaled(calib, scale)
+    size_px = (small.width, small.height)
+    crop = (small.height * scale, small.width * scale)
+    left_s = cv2.resize(left_g[: crop[0], : crop[1]], size_px, interpolation=cv2.INTER_AREA)
+    right_s = cv2.resize(right_g[: crop[0], : crop[1]], size_px, interpolation=cv2.INTER_AREA)
+    tol = config.height_tolerance
+    window = patch_window(
+        small,
+        ahead,
+        size,
+        lateral=lateral,
+        height_tolerance=tol,
+        crop_margin=config.crop_margin,
+        margin_px=2,
+        plane=plane,
+        clip=True,
+    )
+    raw = _sgbm_raw(
+        left_s, right_s, config.sgbm, window.rows, window.cols, window.residual, 1, window.prior
+    )
+    half = size / 2.0 + config.crop_margin
+    points = np.column_stack(
+        _window_cloud(raw, small, window, window.residual, ahead=ahead, half=half, lateral=lateral)[
+            :3
+        ]
+    )
+    expected = (window.rows[1] - window.rows[0]) * (window.cols[1] - window.cols[0])
+    if len(points) < max(100, 0.1 * expected):
+        log.debug("coarse ground fit: only %d points, no fit", len(points))
+        return None
+    fitted, heights = _fit_plane(points, (ahead, lateral))
+    lo, hi = np.quantile(heights, [0.002, 0.998])
+    lo = max(-tol, min(float(lo) - config.band_margin, -config.min_band))
+    hi = min(tol, max(float(hi) + config.band_margin, config.min_band))
+    log.debug(
+        "coarse ground fit: %d points, plane z = %.4f x + %.4f y + %.4f, band %.3f..%.3f m",
+        len(points),
+        *fitted,
+        lo,
+        hi,
+    )
+    return fitted, (lo, hi)
+
+
 # --------------------------------------------------------------------------------------------
 # Statistical moving-window filter
 # --------------------------------------------------------------------------------------------
@@ -847,44 +1187,85 @@ def statistical_outlier_mask(
     ndarray of bool, shape (N,)
         True for the points kept.
     """
-    points = np.asarray(points, dtype=float)
+    points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] != 3:
         raise InputError(f"points must have shape (N, 3), got {points.shape}")
     if not cell > 0:
         raise InputError(f"cell must be positive (m), got {cell}")
-    n = points.shape[0]
-    if n == 0:
+    if points.shape[0] == 0:
         return np.zeros(0, dtype=bool)
-    x, y, z = points[:, 0], points[:, 1], points[:, 2]
-    ix = ((x - x.min()) / cell).astype(np.int64)
-    iy = ((y - y.min()) / cell).astype(np.int64)
-    n_keys = (int(ix.max()) + 1) * (int(iy.max()) + 1)
-    key = iy * (int(ix.max()) + 1) + ix
-    # One sort orders the points by window, then by height: the window index plus the height
-    # scaled into [0, 1). float64 keeps the height to ~1e-11 of the cloud's z range.
+    if points.dtype != np.float32:
+        points = points.astype(np.float64, copy=False)
+    x, y, z = (np.ascontiguousarray(c) for c in points.T)
+    return _window_outlier_mask(
+        x, y, z, (float(x.min()), float(y.min())), cell, k, min_tolerance, min_count
+    )
+
+
+def _window_outlier_mask(
+    x: np.ndarray,
+    y: np.ndarray,
+    z: np.ndarray,
+    origin: tuple[float, float],
+    cell: float,
+    k: float,
+    min_tolerance: float,
+    min_count: int,
+) -> np.ndarray:
+    """The filter on coordinate columns, windows ``cell`` m square from ``origin`` (x0, y0).
+
+    One sort orders the points by window, then by height: the window index plus the height
+    scaled into [0, 1); the medians are read at each window's middle. float64 keeps the
+    height to ~1e-11 of the cloud's z range. float32 columns are sorted in float32 (twice as
+    fast) when that still resolves heights to 1/32 of ``min_tolerance`` (2^24 steps share
+    window index and height).
+    """
+    n = z.shape[0]
+    ix = ((x - x.dtype.type(origin[0])) * x.dtype.type(1.0 / cell)).astype(np.int32)
+    iy = ((y - y.dtype.type(origin[1])) * y.dtype.type(1.0 / cell)).astype(np.int32)
+    np.maximum(ix, 0, out=ix)  # float rounding at the origin
+    np.maximum(iy, 0, out=iy)
+    nx = int(ix.max()) + 1
+    n_keys = nx * (int(iy.max()) + 1)
+    key = iy * nx + ix if n_keys < 2**31 else iy.astype(np.int64) * nx + ix
     z0 = float(z.min())
-    scale = float(z.max() - z0) * (1.0 + 1e-9) or 1.0
-    zs = (z - z0) / scale
-    keyed = key + zs
+    span = float(z.max()) - z0
+    bits = max(1, n_keys - 1).bit_length()  # of the window index
+    dtype = (
+        np.float32
+        if z.dtype == np.float32
+        and min_tolerance > 0
+        and span * 2.0 ** (bits - 22) <= min_tolerance / 32
+        else np.float64
+    )
+    # Largest fraction that cannot round up into the next window index.
+    top = 1.0 - 2.0 ** (bits - (22 if dtype == np.float32 else 51))
+    scale = span / top or 1.0
+    zs = (z.astype(dtype, copy=False) - dtype(z0)) * dtype(1.0 / scale)
+    np.minimum(zs, dtype(top), out=zs)
+    fkey = key.astype(dtype)
+    keyed = fkey + zs
     g = np.sort(keyed)
     key_sorted = g.astype(np.int64)
-    starts = np.concatenate(([0], np.flatnonzero(np.diff(key_sorted)) + 1))
-    counts = np.diff(np.append(starts, n))
+    starts = np.flatnonzero(np.diff(key_sorted, prepend=-1))
+    counts = np.diff(starts, append=n)
     cells = key_sorted[starts]
-    centre = 0.5 * (g[starts + (counts - 1) // 2] + g[starts + counts // 2])  # cell + median
+    centre = dtype(0.5) * (g[starts + (counts - 1) // 2] + g[starts + counts // 2])  # + median
     if n_keys <= 4 * n + 1024:
-        lookup = np.empty(n_keys, dtype=np.int64)
-        lookup[cells] = np.arange(len(cells))
+        lookup = np.empty(n_keys, dtype=np.int32)
+        lookup[cells] = np.arange(len(cells), dtype=np.int32)
         window = lookup[key]
     else:  # sparse clouds over large areas: no dense table
         window = np.searchsorted(cells, key)
     deviation = np.abs(keyed - centre[window])  # < 1, in units of scale
+    np.minimum(deviation, dtype(top), out=deviation)
     # Same trick for the MAD: the windows (hence starts and counts) are the same.
-    d = np.sort(key + deviation)
-    mad = 0.5 * (d[starts + (counts - 1) // 2] + d[starts + counts // 2]) - cells
-    tolerance = np.maximum(k * 1.4826 * mad, min_tolerance / scale)
-    keep = (deviation <= tolerance[window]) & (counts[window] >= min_count)
-    log.debug("outlier filter: %d of %d points rejected", n - int(keep.sum()), n)
+    d = np.sort(fkey + deviation)
+    mad = dtype(0.5) * (d[starts + (counts - 1) // 2] + d[starts + counts // 2]) - cells
+    tolerance = np.maximum(dtype(k * 1.4826) * mad, dtype(min_tolerance / scale))
+    tolerance[counts < min_count] = -1.0  # isolated windows: drop every point
+    keep = deviation <= tolerance[window]
+    log.debug("outlier filter: %d of %d points rejected", n - int(np.count_nonzero(keep)), n)
     return keep
 
 
@@ -984,6 +1365,8 @@ def stereo_to_cloud(
     ahead: float = PATCH_AHEAD,
     size: float = PATCH_SIZE,
     lateral: float = 0.0,
+    roll: float | None = None,
+    pitch: float | None = None,
 ) -> np.ndarray:
     """Point cloud in the vehicle frame from a rectified stereo pair (paper section 3.2).
 
@@ -996,16 +1379,21 @@ def stereo_to_cloud(
     config : StereoConfig, optional
         Matcher, filter and window settings; defaults to ``StereoConfig()``.
     restrict_to_patch : bool
-        If True, match only the rows and columns that can see the patch
-        (:func:`patch_window`), on the residual to the ground's disparity when
-        ``config.ground_prior`` (4-5x faster than the full frame), and return only the points
-        over the
-        patch footprint plus ``config.crop_margin`` and within ``config.height_tolerance`` of
-        the vehicle's ground plane (the volume searched); if False, match the full frame with
-        the config's disparity range and return every valid point.
+        If True (the patch path), match only what can see the patch: with
+        ``config.fit_ground``, a coarse pass (:func:`fit_ground`) finds the ground plane under
+        the patch and its relief, then SGM runs on the rows and columns that see the patch
+        (:func:`patch_window`) and on the residual to that plane's disparity over the relief
+        only; the points over the patch footprint plus ``config.crop_margin`` and inside the
+        relief band are returned. If False, match the full frame with the config's disparity
+        range and return every valid point.
     ahead, size, lateral : float
         Patch centre distance ahead of the vehicle origin, patch side, and offset of the
         patch centre to the left, m.
+    roll, pitch : float, optional
+        Vehicle tilt in rad (e.g. the IMU's; conventions of :func:`level_plane`). The patch
+        path then expects level ground rather than the vehicle's ``z = 0`` plane. It only
+        centres the coarse search (or, without ``config.fit_ground``, the search itself);
+        the cloud stays in the vehicle frame.
 
     Returns
     -------
@@ -1021,37 +1409,23 @@ def stereo_to_cloud(
     """
     config = config or StereoConfig()
     left_g, right_g = _check_pair(left, right, calib)
+    f = config.outlier_filter
     if restrict_to_patch:
-        window = patch_window(
-            calib,
-            ahead,
-            size,
-            lateral=lateral,
-            height_tolerance=config.height_tolerance,
-            crop_margin=config.crop_margin,
-            margin_px=config.margin_px,
+        x, y, z, dz = _patch_cloud(
+            left_g, right_g, calib, config, ahead, size, lateral, roll, pitch
         )
-        # Ground outside the searched volume (e.g. beyond the patch in the band's top rows)
-        # can only match wrongly; such matches pile up at the ends of the search range
-        # (trim) or reconstruct outside the volume (crop_to_patch below).
-        disp = compute_disparity(
-            left_g,
-            right_g,
-            config.sgbm,
-            window.rows,
-            cols=window.cols,
-            disparities=window.residual if config.ground_prior else window.disparities,
-            row_step=config.row_step,
-            prior=window.prior if config.ground_prior else None,
-            equalize=config.equalize_subpixel and not config.ground_prior,
-            trim=1,
-        )
-        points = to_vehicle(
-            disparity_to_points(disp, calib, window.rows[0], config.row_step), calib
-        )
-        points = crop_to_patch(
-            points, ahead, size, config.crop_margin, config.height_tolerance, lateral=lateral
-        )
+        if f is not None and len(z):
+            # Heights above the ground plane (not z): a sloping plane adds no spread to the
+            # windows, which are aligned on the footprint's corner.
+            half = size / 2.0 + config.crop_margin
+            keep = _window_outlier_mask(
+                x, y, dz, (ahead - half, lateral - half), f.cell, f.k, f.min_tolerance, f.min_count
+            )
+            x, y, z = x[keep], y[keep], z[keep]
+        points = np.empty((len(z), 3))
+        points[:, 0] = x
+        points[:, 1] = y
+        points[:, 2] = z
     else:
         disp = compute_disparity(
             left_g,
@@ -1061,8 +1435,104 @@ def stereo_to_cloud(
             equalize=config.equalize_subpixel,
         )
         points = to_vehicle(disparity_to_points(disp, calib, 0, config.row_step), calib)
-    if config.outlier_filter is not None:
-        f = config.outlier_filter
-        points = statistical_outlier_filter(points, f.cell, f.k, f.min_tolerance, f.min_count)
+        if f is not None:
+            points = points[
+                statistical_outlier_mask(points, f.cell, f.k, f.min_tolerance, f.min_count)
+            ]
     log.debug("stereo cloud: %d points", len(points))
     return points
+
+
+def _patch_cloud(
+    left_g: np.ndarray,
+    right_g: np.ndarray,
+    calib: StereoCalibration,
+    config: StereoConfig,
+    ahead: float,
+    size: float,
+    lateral: float,
+    roll: float | None,
+    pitch: float | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The patch path of :func:`stereo_to_cloud` before the outlier filter: float32 columns
+    ``x, y, z`` (vehicle frame) and ``dz``, the height above the ground plane searched."""
+    nominal = None if roll is None and pitch is None else level_plane(roll or 0.0, pitch or 0.0)
+    common = {
+        "lateral": lateral,
+        "crop_margin": config.crop_margin,
+        "margin_px": config.margin_px,
+    }
+    # The search volume around the expected ground; this also checks the patch is in view.
+    window = patch_window(
+        calib,
+        ahead,
+        size,
+        height_tolerance=config.height_tolerance,
+        plane=nominal,
+        clip=True,
+        **common,
+    )
+    if config.fit_ground and config.ground_prior:
+        fit = fit_ground(
+            left_g, right_g, calib, config, ahead=ahead, size=size, lateral=lateral, plane=nominal
+        )
+        if fit is not None:
+            try:
+                window = patch_window(
+                    calib, ahead, size, height_tolerance=fit[1], plane=fit[0], clip=True, **common
+                )
+            except InputError as exc:  # a wild fit: keep the whole search volume
+                log.debug("fitted ground rejected: %s", exc)
+    half = size / 2.0 + config.crop_margin
+    if config.ground_prior:
+        # Ground outside the searched volume (e.g. beyond the patch in the band's top rows)
+        # can only match wrongly; such matches pile up at the ends of the search range
+        # (trimmed) or reconstruct outside the volume (cropped).
+        raw = _sgbm_raw(
+            left_g,
+            right_g,
+            config.sgbm,
+            window.rows,
+            window.cols,
+            window.residual,
+            config.row_step,
+            window.prior,
+        )
+        return _window_cloud(
+            raw,
+            calib,
+            window,
+            window.residual,
+            ahead=ahead,
+            half=half,
+            lateral=lateral,
+            row_step=config.row_step,
+            col_step=config.col_step,
+        )
+    # Without the prior: the disparity itself, optionally equalised (slower, kept for
+    # comparison).
+    disp = compute_disparity(
+        left_g,
+        right_g,
+        config.sgbm,
+        window.rows,
+        cols=window.cols,
+        disparities=window.disparities,
+        row_step=config.row_step,
+        equalize=config.equalize_subpixel,
+        trim=1,
+    )
+    if config.col_step > 1:
+        disp[:, np.arange(disp.shape[1]) % config.col_step != 0] = np.nan
+    pts = to_vehicle(disparity_to_points(disp, calib, window.rows[0], config.row_step), calib)
+    pa, pb, pc = window.plane
+    dz = pts[:, 2] - (pa * pts[:, 0] + pb * pts[:, 1] + pc)
+    lo, hi = window.band
+    inside = (
+        (np.abs(pts[:, 0] - ahead) <= half)
+        & (np.abs(pts[:, 1] - lateral) <= half)
+        & (dz >= lo)
+        & (dz <= hi)
+    )
+    x, y, z = (np.ascontiguousarray(c, dtype=np.float32) for c in pts[inside].T)
+    return x, y, z, dz[inside].astype(np.float32)
