@@ -154,7 +154,7 @@ def _levels(features: Any, model: Any) -> np.ndarray:
     from rough_map.classify import roughness_level
 
     levels_cfg = _levels_config(model)
-    names = tuple(levels_cfg.names)
+    names = tuple(levels_cfg.levels)
     lv = roughness_level(features["R"], names, levels_cfg.values())
     lookup = {n: float(i) for i, n in enumerate(names)}
     return np.array([lookup.get(str(v), math.nan) for v in lv])

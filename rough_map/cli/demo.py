@@ -52,6 +52,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="render the stereo pair of every N-th frame (default 4)",
     )
     p.add_argument(
+        "--model",
+        type=Path,
+        default=None,
+        metavar="M",
+        help="terrain model (default: models/default shipped with rough_map)",
+    )
+    p.add_argument(
         "--quick", action="store_true", help="only part 1: the estimator on synthetic patches"
     )
     p.set_defaults(func=run)
@@ -125,7 +132,7 @@ def run(args: argparse.Namespace) -> int:
 def _whole_story(args: argparse.Namespace, t0: float) -> int:
     import shutil
 
-    from rough_map.classify import evaluate_model
+    from rough_map.evaluation import evaluate_model
     from rough_map.cli.map import default_model
     from rough_map.export import export_map
     from rough_map.export.report import write_report
@@ -167,7 +174,7 @@ def _whole_story(args: argparse.Namespace, t0: float) -> int:
     _say(_stereo_check(trav))
 
     _say("\n== 4. Features, terrain model and Bayesian path filter; 5. map, near-to-far ==")
-    model = default_model()
+    model = args.model or default_model()
     result = analyse(trav, model, near_far="auto", progress=args.progress)
     f = result.features
     pred = result.prediction

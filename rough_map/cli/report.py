@@ -42,7 +42,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rough_map.classify import evaluate_model
+    from rough_map.evaluation import evaluate_model
     from rough_map.cli.map import default_model
     from rough_map.export import export_map
     from rough_map.export.report import write_report

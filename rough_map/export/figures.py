@@ -52,7 +52,8 @@ def _save(plt, fig, path: str | Path) -> Path:
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
+    if fig.get_layout_engine() is None:
+        fig.tight_layout()
     with atomic_output(path) as tmp:
         fig.savefig(tmp, format="png")
     plt.close(fig)
@@ -325,6 +326,7 @@ def confusion_matrices(evaluation: dict, path: str | Path) -> Path:
     ``confusion_matrix_normalized``, ``accuracy`` and ``macro_f1``.
     """
     plt, fig = _figure(11, 4.8)
+    fig.set_layout_engine("constrained")
     axes = fig.subplots(1, 2)
     im = None
     for ax, key in zip(axes, ("raw", "filtered"), strict=True):
