@@ -198,9 +198,9 @@ def furrows(
 
 
 def ruts(shape: tuple[int, int], spacing: float, rng: np.random.Generator) -> np.ndarray:
-    """Two shallow wheel ruts along x, 1.4-1.7 m apart about the middle, 5-15 mm deep."""
+    """Two shallow wheel ruts along x, 1.8-2.0 m apart about the middle, 5-15 mm deep."""
     x, y = _grid(shape, spacing)
-    gauge = rng.uniform(1.4, 1.7)
+    gauge = rng.uniform(1.8, 2.0)
     depth = rng.uniform(0.005, 0.015)
     centre = y.mean() + rng.uniform(-0.05, 0.05)
     drift = 0.1 * np.sin(2 * np.pi * x / rng.uniform(8, 20) + rng.uniform(0, 6.3))
