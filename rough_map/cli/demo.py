@@ -132,8 +132,8 @@ def run(args: argparse.Namespace) -> int:
 def _whole_story(args: argparse.Namespace, t0: float) -> int:
     import shutil
 
-    from rough_map.evaluation import evaluate_model
     from rough_map.cli.map import default_model
+    from rough_map.evaluation import evaluate_model
     from rough_map.export import export_map
     from rough_map.export.report import write_report
     from rough_map.io.traverse import load_traverse

@@ -42,8 +42,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rough_map.evaluation import evaluate_model
     from rough_map.cli.map import default_model
+    from rough_map.evaluation import evaluate_model
     from rough_map.export import export_map
     from rough_map.export.report import write_report
     from rough_map.workflow import analyse, level_edges, write_tables
