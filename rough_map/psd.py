@@ -468,20 +468,23 @@ def _periodogram(
     shape = h.shape
     n = shape[-1]
     win, basis, basis_fft, scale = _fast_plan(n, window)
-    ref = h[..., :1, :].mean(axis=-1, keepdims=True) if h.ndim > 1 else h[:1].mean()
-    x = np.empty(shape, dtype=np.float32)
-    np.subtract(h, ref, out=x, casting="same_kind")
-    x = x.reshape(-1, n)
-    coef = x @ basis
-    ss = np.einsum("ij,ij->i", x, x) - np.einsum("ij,ij->i", coef, coef)
-    x *= win
-    spec = scipy.fft.rfft(x, axis=-1)[:, 1:]
-    spec -= coef @ basis_fft
-    p = spec.real * spec.real
-    p += spec.imag * spec.imag
-    p *= np.float32(scale * spacing)
-    if n % 2 == 0:
-        p[:, -1] *= 0.5
+    # Non-finite cells are allowed through here: the caller finds them in ``ss``.
+    with np.errstate(invalid="ignore", over="ignore"):
+        ref = h[..., :1, :].mean(axis=-1, keepdims=True) if h.ndim > 1 else h[:1].mean()
+        x = np.empty(shape, dtype=np.float32)
+        np.subtract(h, ref, out=x, casting="same_kind")
+        x = x.reshape(-1, n)
+        coef = x @ basis
+        ss = np.einsum("ij,ij->i", x, x) - np.einsum("ij,ij->i", coef, coef)
+        # Fold the density scale into the window (one pass less): |c X|^2 = c^2 |X|^2.
+        c = np.float32(math.sqrt(scale * spacing))
+        x *= win * c
+        spec = scipy.fft.rfft(x, axis=-1)[:, 1:]
+        spec -= coef @ (basis_fft * c)
+        p = spec.real * spec.real
+        p += spec.imag * spec.imag
+        if n % 2 == 0:
+            p[:, -1] *= 0.5
     omega = 2.0 * np.pi * np.arange(1, n // 2 + 1) / (n * spacing)
     return omega, p.reshape(*shape[:-1], p.shape[-1]), ss.reshape(shape[:-1])
 
@@ -652,60 +655,68 @@ def patch_roughness(
         arr = arr[None]
     elif arr.shape[0] == 0:
         return []
-    all_finite = arr.ndim == 3 and bool(np.isfinite(arr).all())
-    if not all_finite or arr.size == 0 or arr.shape[-1] < 8:
+    if arr.ndim != 3 or arr.size == 0 or arr.shape[-1] < 8:
         _check_heights(arr.reshape(-1, arr.shape[-1]) if arr.ndim == 3 else arr)
-    n_patch, m, n = arr.shape
-    n_dropped = 0
-    if not all_finite:  # only NaN can remain: _check_heights refuses infinities
-        if not single:
-            # Gap handling changes the number of profiles per patch: one at a time.
-            return [
-                patch_roughness(
-                    a,
-                    spacing,
-                    window=window,
-                    method=method,
-                    nperseg=nperseg,
-                    noverlap=noverlap,
-                    omega0=omega0,
-                    noise_psd=noise_psd,
-                    subtract_noise=subtract_noise,
-                    max_gap=max_gap,
-                    max_gap_fraction=max_gap_fraction,
-                    min_profiles=min_profiles,
-                    gridding=gridding,
-                    waviness=waviness,
-                )
-                for a in arr
-            ]
-        filled, keep = fill_gaps(
-            arr[0], spacing, max_gap=max_gap, max_gap_fraction=max_gap_fraction
-        )
-        n_dropped = m - int(keep.sum())
-        arr = filled[keep][None]
-        if n_dropped:
-            log.debug("dropped %d of %d profiles for gaps", n_dropped, m)
-    if arr.shape[1] < min_profiles and n_dropped == 0:
-        raise PatchError(f"the patch has {m} profiles, need at least {min_profiles}")
     if arr.shape[1] < min_profiles:
-        raise PatchError(
-            f"only {arr.shape[1]} of {m} profiles are usable (need {min_profiles}); "
-            f"{n_dropped} dropped for gaps longer than {max_gap} m or more than "
-            f"{max_gap_fraction:.0%} missing"
-        )
-    m_used = arr.shape[1]
-    seg_n = n if nperseg is None else min(nperseg, n)
+        raise PatchError(f"the patch has {arr.shape[1]} profiles, need at least {min_profiles}")
+    options = {
+        "window": window,
+        "method": method,
+        "nperseg": nperseg,
+        "noverlap": noverlap,
+        "omega0": omega0,
+        "noise_psd": noise_psd,
+        "subtract_noise": subtract_noise,
+        "max_gap": max_gap,
+        "max_gap_fraction": max_gap_fraction,
+        "min_profiles": min_profiles,
+        "gridding": gridding,
+        "waviness": waviness,
+    }
+    out = _estimate(arr, spacing, options)
+    return out[0] if single else out
+
+
+def _estimate(
+    arr: np.ndarray, spacing: float, opt: dict, n_dropped: int = 0, check: bool = True
+) -> list[PatchRoughness]:
+    """Estimates for a stack (patches, profiles, samples) of heights, in cache-sized chunks.
+
+    With ``check``, patches with non-finite cells go through :func:`_with_gaps`. The
+    single-segment path finds them in its own output (per-profile sums of squares), which
+    saves a pass over the input; the Welch path checks up front.
+    """
+    n_patch, m, n = arr.shape
+    nperseg = opt["nperseg"]
+    fast = nperseg is None or nperseg >= n
+    if check and not fast:
+        finite = np.isfinite(arr).all(axis=(1, 2))
+        if not finite.all():
+            return _merge(
+                finite,
+                _estimate(arr[finite], spacing, opt, check=False),
+                _with_gaps(arr[~finite], spacing, opt),
+            )
+    seg_n = n if fast else min(nperseg, n)
     out: list[PatchRoughness] = []
-    chunk = max(1, _CHUNK_CELLS // (m_used * n))  # keep chunks in cache
+    chunk = max(1, _CHUNK_CELLS // (m * n))  # keep chunks in cache
     for start in range(0, n_patch, chunk):
         part = arr[start : start + chunk]
-        if nperseg is None or nperseg >= n:
-            omega, p, ss = _periodogram(part, spacing, window)
+        if fast:
+            omega, p, ss = _periodogram(part, spacing, opt["window"])
+            if check:
+                finite = np.isfinite(ss).all(axis=1)
+                if not finite.all():
+                    out += _merge(
+                        finite,
+                        _estimate(part[finite], spacing, opt, n_dropped, False),
+                        _with_gaps(part[~finite], spacing, opt),
+                    )
+                    continue
             bias = -float(np.euler_gamma)
-            rms = np.sqrt(np.maximum(ss.sum(axis=1), 0.0) / (m_used * n))
+            rms = np.sqrt(np.maximum(ss.sum(axis=1), 0.0) / (m * n))
         else:
-            omega, p, bias = _spectrum(part, spacing, window, nperseg, noverlap)
+            omega, p, bias = _spectrum(part, spacing, opt["window"], nperseg, opt["noverlap"])
             rms = _rms(part)
         out += _fit(
             omega,
@@ -714,17 +725,45 @@ def patch_roughness(
             spacing,
             n,
             seg_n,
-            window,
-            method,
-            omega0,
-            noise_psd,
-            subtract_noise,
+            opt["window"],
+            opt["method"],
+            opt["omega0"],
+            opt["noise_psd"],
+            opt["subtract_noise"],
             n_dropped,
             rms,
-            gridding,
-            waviness,
+            opt["gridding"],
+            opt["waviness"],
         )
-    return out[0] if single else out
+    return out
+
+
+def _merge(mask: np.ndarray, where_true: list, where_false: list) -> list:
+    """Interleave two result lists back into the order given by ``mask``."""
+    t, f = iter(where_true), iter(where_false)
+    return [next(t) if k else next(f) for k in mask]
+
+
+def _with_gaps(arr: np.ndarray, spacing: float, opt: dict) -> list[PatchRoughness]:
+    """Patches with missing cells: the gap policy, one patch at a time."""
+    out = []
+    for patch in arr:
+        h = _check_heights(patch)  # refuses infinities; NaN is missing data
+        m = h.shape[0]
+        filled, keep = fill_gaps(
+            h, spacing, max_gap=opt["max_gap"], max_gap_fraction=opt["max_gap_fraction"]
+        )
+        n_used = int(keep.sum())
+        if n_used < opt["min_profiles"]:
+            raise PatchError(
+                f"only {n_used} of {m} profiles are usable (need {opt['min_profiles']}); "
+                f"{m - n_used} dropped for gaps longer than {opt['max_gap']} m or more than "
+                f"{opt['max_gap_fraction']:.0%} missing"
+            )
+        if n_used < m:
+            log.debug("dropped %d of %d profiles for gaps", m - n_used, m)
+        out += _estimate(filled[keep][None], spacing, opt, m - n_used, check=False)
+    return out
 
 
 _CHUNK_CELLS = 400_000
