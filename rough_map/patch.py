@@ -250,7 +250,7 @@ def grid_points(
     roll: float | None = None,
     pitch: float | None = None,
     level: bool = True,
-    level_threshold: float = math.radians(1.0),
+    level_threshold: float = math.radians(2.0),
 ) -> GriddedPatch:
     """Cut the patch of interest out of a cloud and grid it (mean z per cell).
 
@@ -312,7 +312,7 @@ def grid_points(
 
 
 def _plane(
-    pts: np.ndarray, spec: PatchSpec, rot: np.ndarray | None, n_sample: int = 40_000
+    pts: np.ndarray, spec: PatchSpec, rot: np.ndarray | None, n_sample: int = 10_000
 ) -> tuple[np.ndarray | None, float]:
     """Least-squares plane of a subsample of the patch's points.
 
@@ -327,7 +327,10 @@ def _plane(
     if ok.sum() < 10:
         return None, math.nan
     a = np.column_stack([np.ones(int(ok.sum())), dx[ok], dy[ok]])
-    coef, *_ = np.linalg.lstsq(a, z[ok], rcond=None)
+    try:  # normal equations: 3 x 3, much cheaper than lstsq on the points
+        coef = np.linalg.solve(a.T @ a, a.T @ z[ok])
+    except np.linalg.LinAlgError:
+        return None, math.nan
     normal = np.array([-coef[1], -coef[2], 1.0])
     return normal / np.linalg.norm(normal), float(coef[0])
 
