@@ -1,0 +1,147 @@
+"""``rough-map classify TRAVERSE --model M --out labels.csv``: terrain class of every frame.
+
+The CSV has one row per frame: ``frame``, ``t`` (s), ``x``, ``y`` (m), ``distance_m`` along
+the path, ``valid``, the raw (per-frame classifier) class and its probability, the
+filtered class (path filter, mode as the model's unless ``--mode``) and its probability,
+the roughness ``level``, ``R_m3_per_rad`` and the true ``label`` if the traverse has one.
+A frame without a valid patch has an empty raw class and probability: the classifier has
+nothing to go on, and the filter only carries its belief forward over it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import sys
+from collections import Counter
+from pathlib import Path
+
+from rough_map.cli._common import emit_json, table
+
+COLUMNS = (
+    "frame",
+    "t",
+    "x",
+    "y",
+    "distance_m",
+    "valid",
+    "raw_class",
+    "raw_proba",
+    "filtered_class",
+    "filtered_proba",
+    "level",
+    "R_m3_per_rad",
+    "label",
+)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "classify",
+        help="raw and filtered terrain class and roughness level of every frame",
+        description=(
+            "Classify the patch ahead in every frame of a traverse with a model from "
+            "`rough-map train`, filter the classes along the path, and write one CSV row per "
+            "frame: raw class and probability, filtered class and probability, roughness "
+            "level. Frames without a valid patch get no raw class."
+        ),
+    )
+    p.add_argument(
+        "traverse",
+        type=Path,
+        metavar="TRAVERSE",
+        help="traverse folder or file, or a features table (.csv)",
+    )
+    p.add_argument(
+        "--model",
+        type=Path,
+        required=True,
+        metavar="M",
+        help="model name or file (models/NAME or models/NAME.skops)",
+    )
+    p.add_argument("--out", type=Path, required=True, metavar="labels.csv")
+    p.add_argument(
+        "--mode",
+        choices=("forward", "smooth", "viterbi"),
+        help="filter mode (default: the model's)",
+    )
+    p.add_argument("--json", action="store_true", help="print a JSON summary")
+    p.set_defaults(func=run)
+
+
+def _fmt(value: object) -> str:
+    if isinstance(value, float):
+        return "" if not math.isfinite(value) else f"{value:.6g}"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    return str(value)
+
+
+def run(args: argparse.Namespace) -> int:
+    from rough_map.classify import feature_tables
+    from rough_map.errors import InputError
+    from rough_map.io.model import load_terrain_model
+    from rough_map.io.pointcloud import atomic_output
+
+    if args.out.suffix.lower() != ".csv":
+        raise InputError(f"--out must be a .csv file, not {args.out.name!r}")
+    model = load_terrain_model(args.model)
+    (tab,) = feature_tables([args.traverse], model.extraction_, progress=args.progress)
+    pred = model.predict(tab, mode=args.mode)
+    cols = tab.columns
+    raw_p = pred.raw_confidence
+    filt_p = pred.filtered_confidence
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_output(args.out) as tmp, open(tmp, "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(COLUMNS)
+        for i in range(len(tab)):
+            valid = bool(pred.valid[i])
+            writer.writerow(
+                [
+                    _fmt(v)
+                    for v in (
+                        int(cols["frame"][i]),
+                        float(cols["t"][i]),
+                        float(cols["x"][i]),
+                        float(cols["y"][i]),
+                        float(pred.distance[i]),
+                        valid,
+                        pred.raw_class[i],
+                        float(raw_p[i]),
+                        pred.filtered_class[i],
+                        float(filt_p[i]),
+                        pred.level[i],
+                        float(cols["R"][i]) if valid else math.nan,
+                        cols["label"][i],
+                    )
+                ]
+            )
+    n_invalid = int((~pred.valid).sum())
+    print(
+        f"wrote {len(tab)} frames ({n_invalid} without a valid patch) to {args.out}",
+        file=sys.stderr,
+    )
+    counts = Counter(str(c) for c in pred.filtered_class)
+    levels = Counter(str(c) for c in pred.level if c)
+    if args.json:
+        emit_json(
+            {
+                "file": str(args.out),
+                "frames": len(tab),
+                "invalid": n_invalid,
+                "mode": pred.mode,
+                "filtered_class_frames": dict(counts),
+                "level_frames": dict(levels),
+            }
+        )
+        return 0
+    rows = [[c, str(counts.get(str(c), 0))] for c in pred.classes]
+    print(table(rows, ["filtered class", "frames"]))
+    if levels:
+        print()
+        print(
+            table([[lv, str(levels.get(lv, 0))] for lv in model.level_names_], ["level", "frames"])
+        )
+    return 0

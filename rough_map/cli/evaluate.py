@@ -1,0 +1,173 @@
+"""``rough-map evaluate TRAVERSE... --model M``: how well a model labels traverses.
+
+Scores the raw (per-frame classifier) and the filtered classes against the traverses'
+labels (:func:`rough_map.evaluation.evaluate_model`): confusion matrix (counts and
+row-normalised), precision, recall and F1 per class, macro-F1 and accuracy, all computed by
+:mod:`sklearn.metrics` on the scored frames.
+
+Scored frames are the frames with a label and a valid patch, the same set for raw and
+filtered, so the two are comparable and each number equals the ``sklearn.metrics`` call on
+the labels of those frames. Frames without a label are skipped; frames without a valid
+patch have no raw class (the filter still predicts them from its neighbours) and are
+skipped too. Both counts are reported. Labels the model does not know are an error.
+
+``--json`` prints one object with ``raw`` and ``filtered``, each holding ``classes``,
+``confusion_matrix``, ``confusion_matrix_normalized``, ``precision``, ``recall``, ``f1``,
+``support``, ``accuracy`` and ``macro_f1``, plus the frame counts and per-traverse results.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rough_map.cli._common import emit_json, table
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "evaluate",
+        help="confusion matrix, precision/recall/F1, macro-F1 and accuracy, raw and filtered",
+        description=(
+            "Classify labelled traverses with a model from `rough-map train` and score the "
+            "raw and the filtered classes against the labels (frames with a label and a "
+            "valid patch). Unlabelled frames and frames without a valid patch are counted "
+            "and skipped."
+        ),
+    )
+    p.add_argument(
+        "traverses",
+        nargs="+",
+        type=Path,
+        metavar="TRAVERSE",
+        help="labelled traverse folder or file, or a features table (.csv)",
+    )
+    p.add_argument(
+        "--model",
+        type=Path,
+        required=True,
+        metavar="M",
+        help="model name or file (models/NAME or models/NAME.skops)",
+    )
+    p.add_argument(
+        "--mode",
+        choices=("forward", "smooth", "viterbi"),
+        help="filter mode (default: the model's)",
+    )
+    p.add_argument("--json", action="store_true", help="print the results as JSON")
+    p.add_argument(
+        "--plot",
+        type=Path,
+        metavar="cm.png",
+        help="draw the row-normalised confusion matrices (raw and filtered)",
+    )
+    p.set_defaults(func=run)
+
+
+def plot_confusion(result: dict[str, Any], path: Path) -> None:
+    """Row-normalised confusion matrices, raw and filtered side by side, to an image file."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.8), constrained_layout=True)
+    for ax, key in zip(axes, ("raw", "filtered"), strict=True):
+        part = result[key]
+        cm = np.asarray(part["confusion_matrix_normalized"])
+        names = part["classes"]
+        im = ax.imshow(cm, vmin=0.0, vmax=1.0, cmap="Blues")
+        ax.set_xticks(range(len(names)), names, rotation=40, ha="right")
+        ax.set_yticks(range(len(names)), names)
+        ax.set_xlabel("predicted class")
+        ax.set_ylabel("true class")
+        ax.set_title(f"{key}: macro-F1 {part['macro_f1']:.3f}, accuracy {part['accuracy']:.3f}")
+        for i in range(cm.shape[0]):
+            for j in range(cm.shape[1]):
+                ax.text(
+                    j,
+                    i,
+                    f"{cm[i, j]:.2f}",
+                    ha="center",
+                    va="center",
+                    color="white" if cm[i, j] > 0.5 else "black",
+                    fontsize=8,
+                )
+    fig.colorbar(im, ax=axes, shrink=0.8, label="fraction of the true class")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120, bbox_inches="tight")
+    plt.close(fig)
+
+
+def _report(part: dict[str, Any], title: str) -> str:
+    names = part["classes"]
+    cm = part["confusion_matrix"]
+    norm = part["confusion_matrix_normalized"]
+    head = ["true \\ predicted", *names]
+    counts = table([[n, *(str(v) for v in row)] for n, row in zip(names, cm, strict=True)], head)
+    fracs = table(
+        [[n, *(f"{v:.2f}" for v in row)] for n, row in zip(names, norm, strict=True)], head
+    )
+    per = table(
+        [
+            [
+                n,
+                f"{part['precision'][n]:.3f}",
+                f"{part['recall'][n]:.3f}",
+                f"{part['f1'][n]:.3f}",
+                str(part["support"][n]),
+            ]
+            for n in names
+        ],
+        ["class", "precision", "recall", "F1", "support"],
+    )
+    return (
+        f"== {title}: macro-F1 {part['macro_f1']:.3f}, accuracy {part['accuracy']:.3f} "
+        f"({part['frames']} frames)\n\nconfusion matrix (counts)\n{counts}\n\n"
+        f"confusion matrix (row-normalised)\n{fracs}\n\n{per}\n"
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    from rough_map.classify import feature_tables
+    from rough_map.evaluation import evaluate_model
+    from rough_map.io.model import load_terrain_model
+
+    model = load_terrain_model(args.model)
+    tables = feature_tables(args.traverses, model.extraction_, progress=args.progress)
+    result = evaluate_model(model, tables, args.mode)
+    result["model"] = str(args.model)
+    fr = result["frames"]
+    print(
+        f"scored {fr['scored']} of {fr['total']} frames; skipped {fr['unlabelled']} without "
+        f"a label and {fr['invalid']} without a valid patch",
+        file=sys.stderr,
+    )
+    if args.plot is not None:
+        plot_confusion(result, args.plot)
+        print(f"wrote {args.plot}", file=sys.stderr)
+    if args.json:
+        emit_json(result)
+        return 0
+    print(_report(result["raw"], "raw"))
+    print(_report(result["filtered"], f"filtered ({result['mode']})"))
+    if len(result["per_traverse"]) > 1:
+        print(
+            table(
+                [
+                    [
+                        t["name"],
+                        str(t["frames"]),
+                        f"{t['raw']['macro_f1']:.3f}",
+                        f"{t['filtered']['macro_f1']:.3f}",
+                    ]
+                    for t in result["per_traverse"]
+                ],
+                ["traverse", "frames", "raw macro-F1", "filtered macro-F1"],
+            )
+        )
+    return 0

@@ -1,0 +1,339 @@
+"""Model files: a :class:`~rough_map.classify.TerrainModel` in skops format, and its card.
+
+``save_terrain_model(model, "models/NAME")`` writes
+
+* ``models/NAME.skops``: the model, in the `skops.io <https://skops.readthedocs.io>`_
+  format (a zip of JSON and numpy arrays, no pickle);
+* ``models/NAME.card.json``: the model card (classes, features, training-data hash,
+  cross-validated metrics, library versions) with the sha256 of the model file.
+
+Loading never runs code from the file. skops rebuilds only the types it is told to trust:
+its own defaults (numpy, builtins, most of scikit-learn) plus the explicit list
+:data:`TRUSTED_TYPES`. A file holding any other type is refused before anything is built,
+and so is a file whose sha256 differs from the one its card records (altered after it
+was written), a file that is not a skops zip, and one that holds anything but a
+``TerrainModel`` of the current :data:`~rough_map.classify.MODEL_FORMAT`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import platform
+import zipfile
+from datetime import UTC, datetime
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+from rough_map.errors import ModelError
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "CARD_SUFFIX",
+    "MODEL_SUFFIX",
+    "TRUSTED_TYPES",
+    "load_terrain_model",
+    "model_paths",
+    "read_card",
+    "save_terrain_model",
+    "sha256_file",
+]
+
+MODEL_SUFFIX = ".skops"
+CARD_SUFFIX = ".card.json"
+CARD_FORMAT = "rough_map model card 1"
+
+#: Types that skops does not trust by default and that a rough_map model file may hold.
+#: Anything else in a file is refused.
+TRUSTED_TYPES: tuple[str, ...] = (
+    "rough_map.classify.SpectralFeatures",
+    "rough_map.classify.TerrainModel",
+    "rough_map.filter.PathFilter",
+    "sklearn.calibration._CalibratedClassifier",
+    "sklearn.calibration._SigmoidCalibration",
+    "sklearn.calibration._TemperatureScaling",
+    "sklearn.ensemble._hist_gradient_boosting.predictor.TreePredictor",
+    "sklearn.model_selection._split.PredefinedSplit",
+)
+
+#: Libraries whose versions a card records.
+_LIBRARIES = ("numpy", "scipy", "scikit-learn", "skops", "rough-map")
+
+
+def model_paths(name: str | Path) -> tuple[Path, Path]:
+    """The model file and the card of a model name.
+
+    Parameters
+    ----------
+    name : str or Path
+        ``models/NAME``, ``models/NAME.skops`` or ``models/NAME.card.json``.
+
+    Returns
+    -------
+    (Path, Path)
+        ``models/NAME.skops`` and ``models/NAME.card.json``.
+    """
+    path = Path(name)
+    text = path.name
+    for suffix in (CARD_SUFFIX, MODEL_SUFFIX):
+        if text.endswith(suffix):
+            text = text[: -len(suffix)]
+            break
+    base = path.with_name(text)
+    return base.with_name(text + MODEL_SUFFIX), base.with_name(text + CARD_SUFFIX)
+
+
+def sha256_file(path: str | Path) -> str:
+    """Hex sha256 of a file's bytes."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _versions() -> dict[str, str]:
+    out = {"python": platform.python_version()}
+    for lib in _LIBRARIES:
+        try:
+            out[lib] = metadata.version(lib)
+        except metadata.PackageNotFoundError:
+            out[lib] = "unknown"
+    return out
+
+
+def _jsonable(value: Any) -> Any:
+    import numpy as np
+
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _jsonable(value.tolist())
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def build_card(model: Any, model_file: Path, extra: dict[str, Any] | None = None) -> dict:
+    """The model card of a fitted model already written to ``model_file``.
+
+    Parameters
+    ----------
+    model : TerrainModel
+        The fitted model.
+    model_file : Path
+        Its file (hashed here).
+    extra : dict, optional
+        More entries (e.g. the command that trained it).
+
+    Returns
+    -------
+    dict
+        JSON-ready card.
+    """
+    from rough_map.classify import FEATURE_DOC, INPUT_SCALARS
+
+    flt = model.filter_
+    features = model.feature_names
+    edges = model.classifier_.named_steps["features"].band_edges()
+
+    def doc(name: str) -> str:
+        if name.startswith("band_"):
+            lo, hi = edges[int(name.split("_")[1])]
+            return (
+                f"mean log10 residual of the spectrum about its line over {lo:.0f}-{hi:.0f} rad/m"
+            )
+        return FEATURE_DOC.get(name, "")
+
+    card = {
+        "format": CARD_FORMAT,
+        "model_file": model_file.name,
+        "sha256": sha256_file(model_file),
+        "size_bytes": model_file.stat().st_size,
+        "created": datetime.now(UTC).isoformat(timespec="seconds"),
+        "model_format": model.format_,
+        "classes": [str(c) for c in model.classes_],
+        "features": {
+            "inputs": [*INPUT_SCALARS, f"log10 PSD at {len(model.omega_)} wavenumbers"],
+            "omega_rad_per_m": [float(model.omega_[0]), float(model.omega_[-1])],
+            "derived": {name: doc(name) for name in features},
+        },
+        "classifier": {
+            "kind": model.kind,
+            "pipeline": [name for name, _ in model.classifier_.steps],
+            "class_weight": "balanced",
+            "calibration": "temperature scaling, folds of whole traverses",
+            "level_jitter_log10": float(model.level_jitter),
+        },
+        "filter": {
+            "mode": model.mode,
+            "evidence_per_m": float(model.evidence_per_m_),
+            "emission": "min(1, evidence_per_m * step_m) * log p(class | frame)",
+            "switch_rate_per_m": {
+                str(c): float(-flt.generator_[i, i]) for i, c in enumerate(flt.classes_)
+            },
+            "class_prior": {
+                str(c): float(p) for c, p in zip(flt.classes_, flt.class_prior_, strict=True)
+            },
+        },
+        "roughness_levels": {
+            "levels": list(model.level_names_),
+            "thresholds_m3_per_rad": list(model.level_thresholds_),
+            "quantity": "R = Phi(1 rad/m), m^3/rad",
+        },
+        "feature_extraction": model.extraction_,
+        "training_data": model.training_,
+        "cross_validation": model.cv_report_,
+        "versions": _versions(),
+    }
+    if extra:
+        card.update(extra)
+    return _jsonable(card)
+
+
+def save_terrain_model(
+    model: Any, name: str | Path, *, card_extra: dict[str, Any] | None = None
+) -> tuple[Path, Path]:
+    """Write a fitted model and its card.
+
+    Parameters
+    ----------
+    model : TerrainModel
+        Fitted.
+    name : str or Path
+        ``models/NAME`` (suffixes are added; see :func:`model_paths`).
+    card_extra : dict, optional
+        More card entries.
+
+    Returns
+    -------
+    (Path, Path)
+        The model file and the card.
+
+    Raises
+    ------
+    ModelError
+        The model is not a fitted TerrainModel.
+    """
+    import skops.io as sio
+
+    from rough_map.classify import TerrainModel
+    from rough_map.io.pointcloud import atomic_output
+
+    if not isinstance(model, TerrainModel) or not hasattr(model, "classifier_"):
+        raise ModelError(f"only a fitted TerrainModel can be saved; got {type(model).__name__}")
+    model_file, card_file = model_paths(name)
+    model_file.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_output(model_file) as tmp:
+        sio.dump(model, tmp, compression=zipfile.ZIP_DEFLATED, compresslevel=9)
+    card = build_card(model, model_file, card_extra)
+    with atomic_output(card_file) as tmp:
+        tmp.write_text(json.dumps(card, indent=2) + "\n", encoding="utf-8")
+    log.info("wrote %s (%d bytes) and %s", model_file, card["size_bytes"], card_file)
+    return model_file, card_file
+
+
+def read_card(name: str | Path) -> dict[str, Any]:
+    """Read a model card.
+
+    Parameters
+    ----------
+    name : str or Path
+        The model name, its file or its card.
+
+    Raises
+    ------
+    ModelError
+        Missing or unreadable card.
+    """
+    _, card_file = model_paths(name)
+    try:
+        card = json.loads(card_file.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ModelError(f"{card_file}: no model card") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ModelError(f"{card_file}: unreadable model card: {err}") from err
+    if not isinstance(card, dict) or card.get("format") != CARD_FORMAT:
+        raise ModelError(f"{card_file}: not a rough_map model card")
+    return card
+
+
+def load_terrain_model(name: str | Path, *, verify: bool = True) -> Any:
+    """Load a model written by :func:`save_terrain_model`, safely.
+
+    Parameters
+    ----------
+    name : str or Path
+        ``models/NAME`` or ``models/NAME.skops``.
+    verify : bool
+        Check the file's sha256 against its card (a missing card is then an error). With
+        ``verify=False`` a missing card only logs a warning; a card that disagrees with the
+        file is an error either way.
+
+    Returns
+    -------
+    TerrainModel
+
+    Raises
+    ------
+    ModelError
+        No such file; not a skops file; types outside the trusted ones; a sha256 that
+        differs from the card's; an object other than a TerrainModel of this format.
+    """
+    import skops.io as sio
+
+    from rough_map.classify import MODEL_FORMAT, TerrainModel
+
+    model_file, card_file = model_paths(name)
+    if not model_file.is_file():
+        raise ModelError(f"{model_file}: no such model file")
+    digest = sha256_file(model_file)
+    if card_file.is_file():
+        expected = read_card(card_file).get("sha256")
+        if expected != digest:
+            raise ModelError(
+                f"{model_file}: sha256 {digest[:16]}... differs from the {expected!s:.16}... "
+                f"in {card_file.name}: the file was altered or replaced after it was written; "
+                "refusing to load it"
+            )
+    elif verify:
+        raise ModelError(
+            f"{model_file}: no model card {card_file.name} next to it, so its sha256 cannot be "
+            "checked (load with verify=False to skip the check)"
+        )
+    else:
+        log.warning("%s: no model card; the file's integrity is not checked", model_file)
+    try:
+        untrusted = sio.get_untrusted_types(file=model_file)
+    except (zipfile.BadZipFile, KeyError, ValueError, TypeError, OSError) as err:
+        raise ModelError(
+            f"{model_file}: not a skops model file ({type(err).__name__}: {err})"
+        ) from err
+    refused = sorted(set(untrusted) - set(TRUSTED_TYPES))
+    if refused:
+        raise ModelError(
+            f"{model_file}: refusing to load types rough_map does not trust: {refused}; the "
+            "file was not written by this version of rough_map, or it was altered"
+        )
+    try:
+        model = sio.load(model_file, trusted=list(TRUSTED_TYPES))
+    except (zipfile.BadZipFile, KeyError, ValueError, TypeError, AttributeError) as err:
+        raise ModelError(
+            f"{model_file}: cannot load the model ({type(err).__name__}: {err})"
+        ) from err
+    if not isinstance(model, TerrainModel):
+        raise ModelError(
+            f"{model_file}: holds a {type(model).__module__}.{type(model).__name__}, not a "
+            "rough_map TerrainModel"
+        )
+    if getattr(model, "format_", None) != MODEL_FORMAT:
+        raise ModelError(
+            f"{model_file}: model format {getattr(model, 'format_', None)!r}; this version of "
+            f"rough_map reads {MODEL_FORMAT!r}; retrain it with `rough-map train`"
+        )
+    return model

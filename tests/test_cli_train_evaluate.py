@@ -1,0 +1,235 @@
+"""``rough-map train``, ``classify`` and ``evaluate`` on small simulated traverses.
+
+The traverses are written in the minimal traverse form (frames with only t, pose, cloud and
+label: no IMU, no images), as an independent data set would be, from short courses over
+all five surfaces at the paper's speeds of 0.3, 0.5 and 0.7 m/s.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from sklearn.metrics import accuracy_score, confusion_matrix, f1_score
+
+from rough_map.cli.main import main
+from rough_map.config import TraverseSpec
+from rough_map.io.traverse import save_traverse
+from rough_map.pipeline import read_features, traverse_features, write_features
+from rough_map.simulate.course import SensorSpec, sense_cloud
+from rough_map.simulate.world import Segment, build_world, drive
+
+ROOT = Path(__file__).resolve().parents[1]
+SEGMENT_M = 3.0
+
+
+def make_traverse(
+    out: Path, surfaces: list[str], *, speed: float, seed: int, points_per_cell: float = 4.0
+) -> Path:
+    """A minimal traverse (t, pose, cloud, label per frame) over ``surfaces``, 3 m each."""
+    (out / "clouds").mkdir(parents=True)
+    segments = [Segment(s, i * SEGMENT_M, (i + 1) * SEGMENT_M) for i, s in enumerate(surfaces)]
+    world = build_world(segments, width=1.4, seed=seed, lead=1.6)
+    sensor = SensorSpec(points_per_cell=points_per_cell, half_extent=0.47)
+    poses = drive(world, 0.0, segments[-1].end - sensor.ahead - 0.5, speed=speed, seed=seed)
+    rng = np.random.default_rng(seed)
+    frames = []
+    for i, (t, x, y, z, roll, pitch, yaw) in enumerate(poses):
+        cloud = sense_cloud(world, np.array([x, y, z, roll, pitch, yaw]), sensor, rng)
+        np.save(out / "clouds" / f"{i:06d}.npy", cloud)
+        ahead = x + sensor.ahead * math.cos(yaw)  # the class under the patch centre
+        label = next((s.surface for s in segments if ahead < s.end), segments[-1].surface)
+        frames.append(
+            {
+                "t": float(t),
+                "pose": {"x": float(x), "y": float(y), "yaw": float(yaw)},
+                "cloud": f"clouds/{i:06d}.npy",
+                "label": label,
+            }
+        )
+    spec = TraverseSpec.model_validate(
+        {"schema_version": "1.0", "name": out.name, "crs": "local", "frames": frames}
+    )
+    return save_traverse(spec, out).parent
+
+
+ALL = ["concrete", "gravel", "dirt_road", "ploughed_soil", "compact_soil"]
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory) -> dict[str, Path]:
+    """Two training traverses (0.5 and 0.4 m/s) and three unseen ones at 0.3/0.5/0.7 m/s,
+    with the features of the unseen ones as tables (so that each is computed once)."""
+    root = tmp_path_factory.mktemp("sim")
+    paths = {
+        "train_a": make_traverse(root / "train_a", ALL, speed=0.5, seed=11),
+        "train_b": make_traverse(root / "train_b", ALL[::-1], speed=0.4, seed=12),
+        "v03": make_traverse(root / "v03", ["gravel", "concrete", "ploughed_soil"], speed=0.3,
+                             seed=21),
+        "v05": make_traverse(root / "v05", ["compact_soil", "dirt_road", "gravel"], speed=0.5,
+                             seed=22),
+        "v07": make_traverse(root / "v07", ["dirt_road", "ploughed_soil", "concrete",
+                                            "compact_soil"], speed=0.7, seed=23),
+    }  # fmt: skip
+    for key in ("v03", "v05", "v07"):
+        paths[f"{key}_csv"] = write_features(traverse_features(paths[key]), root / f"{key}.csv")
+    return paths
+
+
+def run(capsys, *argv: object) -> tuple[int, str, str]:
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.fixture(scope="module")
+def trained(sim, tmp_path_factory) -> Path:
+    """``rough-map train`` on the two training traverse folders."""
+    out = tmp_path_factory.mktemp("models") / "sim"
+    code = main(["-q", "train", str(sim["train_a"]), str(sim["train_b"]), "--out", str(out),
+                 "--cv", "2"])  # fmt: skip
+    assert code == 0
+    return out
+
+
+def read_labels(path: Path) -> dict[str, np.ndarray]:
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    return {k: np.array([r[k] for r in rows], dtype=object) for k in rows[0]}
+
+
+def test_train_parser_knows_the_classifiers() -> None:
+    from rough_map import classify
+    from rough_map.cli import train
+
+    assert train.CLASSIFIERS == classify.CLASSIFIERS
+
+
+def test_train_writes_model_and_card(trained) -> None:
+    card = json.loads(trained.with_name("sim.card.json").read_text())
+    assert card["classes"] == sorted(ALL)
+    assert card["cross_validation"]["scheme"].startswith("GroupKFold")
+    assert card["training_data"]["traverses"][0]["name"] == "train_a"
+    assert {"level", "slope", "curvature"} <= set(card["features"]["derived"])
+    assert card["command"] is None or card["command"].startswith("rough-map train")
+
+
+def test_evaluate_json_and_plot(sim, trained, tmp_path, capsys) -> None:
+    png = tmp_path / "cm.png"
+    code, out, err = run(capsys, "evaluate", sim["v03_csv"], sim["v05_csv"], sim["v07_csv"],
+                         "--model", trained, "--json", "--plot", png)  # fmt: skip
+    assert code == 0, err
+    result = json.loads(out)
+    for part in ("raw", "filtered"):
+        for key in ("classes", "confusion_matrix", "accuracy", "macro_f1"):
+            assert key in result[part]
+    assert result["raw"]["macro_f1"] > 0.4  # two short training traverses: better than chance
+    assert result["filtered"]["macro_f1"] >= result["raw"]["macro_f1"] - 0.05
+    assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
+    assert "scored" in err
+
+
+def test_evaluate_matches_sklearn_on_classify_output(sim, trained, tmp_path, capsys) -> None:
+    truth, raw, filtered = [], [], []
+    for key in ("v03", "v05", "v07"):
+        out_csv = tmp_path / f"{key}.labels.csv"
+        code, _, err = run(capsys, "classify", sim[f"{key}_csv"], "--model", trained,
+                           "--out", out_csv)  # fmt: skip
+        assert code == 0, err
+        rows = read_labels(out_csv)
+        assert set(rows) >= {"raw_class", "raw_proba", "filtered_class", "filtered_proba"}
+        scored = (rows["valid"] == "true") & (rows["label"] != "")
+        truth.append(rows["label"][scored])
+        raw.append(rows["raw_class"][scored])
+        filtered.append(rows["filtered_class"][scored])
+        proba = rows["filtered_proba"].astype(float)
+        assert np.all((proba > 0) & (proba <= 1))
+    y, r, f = (np.concatenate(v).astype(str) for v in (truth, raw, filtered))
+    code, out, _ = run(capsys, "evaluate", sim["v03_csv"], sim["v05_csv"], sim["v07_csv"],
+                       "--model", trained, "--json")  # fmt: skip
+    result = json.loads(out)
+    for part, pred in (("raw", r), ("filtered", f)):
+        got = result[part]
+        assert got["accuracy"] == pytest.approx(accuracy_score(y, pred))
+        assert got["macro_f1"] == pytest.approx(f1_score(y, pred, average="macro"))
+        assert got["confusion_matrix"] == confusion_matrix(y, pred, labels=got["classes"]).tolist()
+        per_class = f1_score(y, pred, labels=got["classes"], average=None)
+        assert list(got["f1"].values()) == pytest.approx(list(per_class))
+
+
+def test_evaluate_a_traverse_folder(sim, trained, capsys) -> None:
+    """From the clouds of a minimal traverse, as in ``rough-map evaluate TRAVERSE``."""
+    code, out, err = run(capsys, "evaluate", sim["v07"], "--model", trained)
+    assert code == 0, err
+    assert "confusion matrix (row-normalised)" in out and "macro-F1" in out
+
+
+def test_unlabelled_and_invalid_frames_are_counted(sim, trained, tmp_path, capsys) -> None:
+    table = read_features(sim["v05_csv"])
+    table.columns["label"][:3] = ""
+    table.columns["valid"][5:9] = False
+    table.log_psd[5:9] = np.nan
+    path = write_features(table, tmp_path / "holes.csv")
+    code, out, _ = run(capsys, "evaluate", path, "--model", trained, "--json")
+    assert code == 0
+    frames = json.loads(out)["frames"]
+    assert frames["unlabelled"] == 3 and frames["invalid"] == 4
+    assert frames["scored"] == len(table) - 7
+    labels = tmp_path / "holes.labels.csv"
+    assert run(capsys, "classify", path, "--model", trained, "--out", labels)[0] == 0
+    rows = read_labels(labels)
+    assert list(rows["raw_class"][5:9]) == [""] * 4  # no raw class without a valid patch
+    assert all(rows["filtered_class"][5:9] != "")  # the filter still predicts them
+
+
+def test_train_refuses_traverses_without_labels(sim, tmp_path, capsys) -> None:
+    spec = json.loads((sim["train_a"] / "traverse.json").read_text())
+    for frame in spec["frames"]:
+        frame.pop("label", None)
+    out = tmp_path / "unlabelled"
+    out.mkdir()
+    (out / "clouds").symlink_to(sim["train_a"] / "clouds")
+    (out / "traverse.json").write_text(json.dumps({**spec, "name": "unlabelled"}))
+    code, _, err = run(capsys, "train", out, "--out", tmp_path / "m")
+    assert code == 2
+    assert "no labelled frames" in err and "unlabelled" in err
+
+
+def test_evaluate_refuses_unknown_classes(sim, trained, tmp_path, capsys) -> None:
+    table = read_features(sim["v05_csv"])
+    table.columns["label"][:4] = "sand"
+    path = write_features(table, tmp_path / "sand.csv")
+    code, _, err = run(capsys, "evaluate", path, "--model", trained)
+    assert code == 2
+    assert "'sand'" in err and "does not know" in err
+
+
+def test_evaluate_refuses_a_model_from_elsewhere(sim, tmp_path, capsys) -> None:
+    fake = tmp_path / "fake.skops"
+    fake.write_bytes(b"PK\x03\x04 definitely not a model")
+    code, _, err = run(capsys, "evaluate", sim["v05_csv"], "--model", fake)
+    assert code == 2 and "no model card" in err
+    card = json.loads(Path(str(ROOT / "models" / "default.card.json")).read_text())
+    from rough_map.io.model import sha256_file
+
+    card["sha256"] = sha256_file(fake)
+    tmp_path.joinpath("fake.card.json").write_text(json.dumps(card))
+    code, _, err = run(capsys, "classify", sim["v05_csv"], "--model", fake,
+                       "--out", tmp_path / "x.csv")  # fmt: skip
+    assert code == 2 and "not a skops model file" in err
+
+
+def test_default_model_generalises_to_unseen_traverses(sim) -> None:
+    """The shipped model on other seeds, the speeds 0.3/0.5/0.7 m/s and a sparser sensor."""
+    from rough_map.evaluation import evaluate_model
+    from rough_map.io.model import load_terrain_model
+
+    model = load_terrain_model(ROOT / "models" / "default")
+    tables = [read_features(sim[f"{k}_csv"]) for k in ("v03", "v05", "v07")]
+    result = evaluate_model(model, tables)
+    assert result["raw"]["macro_f1"] >= 0.7
+    assert result["filtered"]["macro_f1"] >= result["raw"]["macro_f1"]
