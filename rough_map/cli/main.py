@@ -62,8 +62,19 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help(sys.stderr)
         return 2
+    # Configure the 'rough_map' logger for this run only, and put it back afterwards, so
+    # that calling main() from Python (tests, notebooks) leaves logging as it was.
+    logger = logging.getLogger("rough_map")
+    saved = logger.handlers[:], logger.level, logger.propagate
     _configure_logging(args.verbose, args.quiet)
     args.progress = not args.quiet and sys.stderr.isatty()
+    try:
+        return _run(args)
+    finally:
+        logger.handlers[:], logger.level, logger.propagate = saved
+
+
+def _run(args: argparse.Namespace) -> int:
     try:
         return int(args.func(args) or 0)
     except RoughMapError as exc:
