@@ -23,8 +23,6 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from rough_map.cli._common import emit_json, table
 
 
@@ -66,41 +64,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="draw the row-normalised confusion matrices (raw and filtered)",
     )
     p.set_defaults(func=run)
-
-
-def plot_confusion(result: dict[str, Any], path: Path) -> None:
-    """Row-normalised confusion matrices, raw and filtered side by side, to an image file."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.8), constrained_layout=True)
-    for ax, key in zip(axes, ("raw", "filtered"), strict=True):
-        part = result[key]
-        cm = np.asarray(part["confusion_matrix_normalized"])
-        names = part["classes"]
-        im = ax.imshow(cm, vmin=0.0, vmax=1.0, cmap="Blues")
-        ax.set_xticks(range(len(names)), names, rotation=40, ha="right")
-        ax.set_yticks(range(len(names)), names)
-        ax.set_xlabel("predicted class")
-        ax.set_ylabel("true class")
-        ax.set_title(f"{key}: macro-F1 {part['macro_f1']:.3f}, accuracy {part['accuracy']:.3f}")
-        for i in range(cm.shape[0]):
-            for j in range(cm.shape[1]):
-                ax.text(
-                    j,
-                    i,
-                    f"{cm[i, j]:.2f}",
-                    ha="center",
-                    va="center",
-                    color="white" if cm[i, j] > 0.5 else "black",
-                    fontsize=8,
-                )
-    fig.colorbar(im, ax=axes, shrink=0.8, label="fraction of the true class")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120, bbox_inches="tight")
-    plt.close(fig)
 
 
 def _report(part: dict[str, Any], title: str) -> str:
@@ -148,7 +111,9 @@ def run(args: argparse.Namespace) -> int:
         file=sys.stderr,
     )
     if args.plot is not None:
-        plot_confusion(result, args.plot)
+        from rough_map.export.figures import confusion_matrices
+
+        confusion_matrices(result, args.plot)
         print(f"wrote {args.plot}", file=sys.stderr)
     if args.json:
         emit_json(result)
