@@ -981,11 +981,11 @@ class TerrainModel:
         Cross-validation folds (whole traverses; fewer if there are fewer traverses).
     evidence_per_m : float or "auto", default "auto"
         Weight of the classifier's evidence per metre travelled, 1/m (see
-        :func:`emission_log_likelihood`). "auto" takes the smallest value of
-        :data:`EVIDENCE_GRID` whose filtered macro-F1 on the held-out posteriors (mean of
-        the forward filter's and the smoother's) is within 0.01 of the best: the scores are
-        flat near their top, and a filter that trusts frames less is slower to lock onto a
-        wrong class, while too little evidence makes the forward filter lag.
+        :func:`emission_log_likelihood`). "auto" takes the value of
+        :data:`EVIDENCE_GRID` with the best filtered macro-F1 on the held-out posteriors,
+        the mean of the forward filter's and the smoother's (too little evidence makes the
+        forward filter lag behind a change of class; too much lets a run of wrong frames
+        flip it).
     exclude : tuple of str, default EXCLUDED_FEATURES
         Features of :class:`SpectralFeatures` the classifier does not see.
     level_jitter : float, default 0.25
@@ -1229,13 +1229,7 @@ class TerrainModel:
                     pred = probe.predict(ll, distance=d, groups=g, valid=scored)
                     f1.append(f1_score(y[scored], pred[scored].astype(str), average="macro"))
                 tried.append(float(np.mean(f1)))
-            # the least evidence within 0.01 of the best: the held-out scores are flat near
-            # their top, and a filter that trusts frames less is slower to lock onto a wrong
-            # class
-            best = max(tried)
-            self.evidence_per_m_ = float(
-                next(k for k, f in zip(EVIDENCE_GRID, tried, strict=True) if f >= best - 0.01)
-            )
+            self.evidence_per_m_ = float(EVIDENCE_GRID[int(np.argmax(tried))])
             log.info(
                 "evidence per metre: held-out filtered macro-F1 %s for %s 1/m; chose %.2f 1/m",
                 np.round(tried, 3).tolist(),
