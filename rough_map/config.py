@@ -151,6 +151,25 @@ CrsField = Annotated[
 ]
 
 
+def check_rigid_transform(value: list[list[float]]) -> list[list[float]]:
+    """Validate ``camera_to_vehicle``: 4x4, last row [0, 0, 0, 1], a proper rotation."""
+    m = np.asarray(value, dtype=float)
+    if m.shape != (4, 4):
+        raise ValueError(f"camera_to_vehicle must be 4x4, got shape {m.shape}")
+    if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0]):
+        raise ValueError("camera_to_vehicle last row must be [0, 0, 0, 1]")
+    r = m[:3, :3]
+    if not np.allclose(r @ r.T, np.eye(3), atol=1e-5) or np.linalg.det(r) < 0:
+        raise ValueError("camera_to_vehicle rotation block is not a proper rotation")
+    return value
+
+
+def check_principal_point(calib: Any) -> None:
+    """Validate that the principal point (cx, cy) lies inside the image (px)."""
+    if not (0 <= calib.cx < calib.width and 0 <= calib.cy < calib.height):
+        raise ValueError("principal point (cx, cy) must lie inside the image")
+
+
 class StereoCalibration(_Model):
     """Intrinsics and extrinsics of a rectified stereo rig.
 
@@ -178,20 +197,11 @@ class StereoCalibration(_Model):
     @field_validator("camera_to_vehicle")
     @classmethod
     def _rigid_transform(cls, value: list[list[float]]) -> list[list[float]]:
-        m = np.asarray(value, dtype=float)
-        if m.shape != (4, 4):
-            raise ValueError(f"camera_to_vehicle must be 4x4, got shape {m.shape}")
-        if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0]):
-            raise ValueError("camera_to_vehicle last row must be [0, 0, 0, 1]")
-        r = m[:3, :3]
-        if not np.allclose(r @ r.T, np.eye(3), atol=1e-5) or np.linalg.det(r) < 0:
-            raise ValueError("camera_to_vehicle rotation block is not a proper rotation")
-        return value
+        return check_rigid_transform(value)
 
     @model_validator(mode="after")
     def _principal_point_inside(self) -> StereoCalibration:
-        if not (0 <= self.cx < self.width and 0 <= self.cy < self.height):
-            raise ValueError("principal point (cx, cy) must lie inside the image")
+        check_principal_point(self)
         return self
 
     def camera_to_vehicle_matrix(self) -> np.ndarray:

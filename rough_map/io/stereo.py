@@ -99,6 +99,7 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from rough_map.config import check_principal_point, check_rigid_transform
 from rough_map.errors import FileFormatError, InputError
 
 log = logging.getLogger(__name__)
@@ -161,20 +162,11 @@ class StereoCalibration(BaseModel):
     @field_validator("camera_to_vehicle")
     @classmethod
     def _check_transform(cls, value: list[list[float]]) -> list[list[float]]:
-        m = np.asarray(value, dtype=float)
-        if m.shape != (4, 4):
-            raise ValueError(f"camera_to_vehicle must be 4x4, got shape {m.shape}")
-        if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0]):
-            raise ValueError("camera_to_vehicle last row must be [0, 0, 0, 1]")
-        r = m[:3, :3]
-        if not np.allclose(r @ r.T, np.eye(3), atol=1e-5) or np.linalg.det(r) < 0:
-            raise ValueError("camera_to_vehicle rotation block is not a proper rotation")
-        return value
+        return check_rigid_transform(value)
 
     @model_validator(mode="after")
     def _check_principal_point(self) -> StereoCalibration:
-        if not (0 <= self.cx < self.width and 0 <= self.cy < self.height):
-            raise ValueError("principal point (cx, cy) must lie inside the image")
+        check_principal_point(self)
         return self
 
     @property
@@ -203,7 +195,7 @@ class StereoCalibration(BaseModel):
         SchemaError
             A field is missing, unknown or invalid.
         """
-        from rough_map.config import load_model  # config imports this module
+        from rough_map.config import load_model
 
         return load_model(path, cls)
 
@@ -404,7 +396,7 @@ class StereoConfig(BaseModel):
         SchemaError
             A key is unknown or a value invalid.
         """
-        from rough_map.config import load_model  # config imports this module
+        from rough_map.config import load_model
 
         return load_model(path, cls)
 
