@@ -293,6 +293,7 @@ def write_tables(result: TraverseAnalysis, out_dir: str | Path) -> dict[str, Pat
                 "filtered_class",
                 "filtered_p",
                 "level",
+                "defect",
             ]
         )
         raw_p = pred.raw_confidence
@@ -312,6 +313,7 @@ def write_tables(result: TraverseAnalysis, out_dir: str | Path) -> dict[str, Pat
                     pred.filtered_class[i],
                     f"{filt_p[i]:.4f}",
                     pred.level[i],
+                    "true" if pred.defect[i] else "false",
                 ]
             )
     paths["labels"] = path

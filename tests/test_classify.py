@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 
 import numpy as np
@@ -413,6 +414,30 @@ def test_invalid_frames_predict_only(fitted_model) -> None:
     assert np.mean(pred.filtered_class == "gravel") > 0.9
 
 
+def test_an_isolated_defect_does_not_change_the_class(fitted_model) -> None:
+    """1 m of concrete that reads as ploughed soil (R x 100: a manhole) is filtered over."""
+    rng = np.random.default_rng(3)
+    table = synthetic_table(
+        rng, [("concrete", 10.0), ("ploughed_soil", 1.0), ("concrete", 9.0)], name="manhole"
+    )
+    d = table.distance()
+    spike = table["label"] == "ploughed_soil"
+    table = FeatureTable(
+        dict(table.columns, label=np.full(len(d), "concrete", dtype=object)),
+        table.omega,
+        table.log_psd,
+        "manhole",
+    )
+    pred = fitted_model.predict(table)
+    assert pred.defect[spike].all() and not pred.defect[np.abs(d - 10.5) > 1.2].any()
+    assert (pred.raw_class[spike] != "concrete").any()  # the classifier alone is fooled
+    assert np.all(pred.filtered_class == "concrete")
+    assert not fitted_model.predict(table, mode="forward").defect.any()  # needs the future
+    off = copy.copy(fitted_model)
+    off.defect_ratio = None
+    assert not off.predict(table).defect.any()
+
+
 def test_training_needs_labels(synthetic_tables) -> None:
     train, _ = synthetic_tables
     table = train[0]
@@ -496,6 +521,8 @@ def test_jitter_scales_the_terrain_not_the_sensor() -> None:
         ({"mode": "online"}, "mode must be"),
         ({"evidence_per_m": -1.0}, "evidence_per_m"),
         ({"level_jitter": -0.1}, "level_jitter"),
+        ({"waviness_jitter": -0.1}, "waviness_jitter"),
+        ({"defect_ratio": 0.5}, "defect_ratio"),
         ({"cv": 1}, "cv must be"),
         ({"level_names": ("low", "high"), "level_thresholds": (1e-4, 2e-4)}, "thresholds"),
         ({"kind": "tree"}, "kind must be one of"),

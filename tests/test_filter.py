@@ -19,6 +19,7 @@ from rough_map.filter import (
     PathFilter,
     estimate_generator,
     forward,
+    isolated_spikes,
     predict,
     smooth,
     transition_matrices,
@@ -473,3 +474,59 @@ def test_pure_functions_reject_bad_shapes() -> None:
         update(np.array([0.0, -np.inf]), np.array([-np.inf, 0.0]))
     with pytest.raises(errors.InputError, match="steps_m must be finite and >= 0"):
         transition_matrices(np.zeros((2, 2)), -1.0)
+
+
+# ------------------------------------------------------------------------ isolated defects
+
+
+def _rough_path(rng: np.random.Generator, n: int = 120, spacing: float = 0.25):
+    """R along a uniform stretch: log-normal drift (factor ~1.6) and frame noise, m^3/rad."""
+    d = spacing * np.arange(n)
+    drift = np.convolve(rng.normal(size=n + 8), np.ones(9) / 3.0, mode="valid")
+    return 16e-6 * np.exp(0.5 * drift + 0.2 * rng.normal(size=n)), d
+
+
+def test_isolated_spike_is_flagged_with_its_margin() -> None:
+    rng = np.random.default_rng(0)
+    R, d = _rough_path(rng)
+    at = (d >= 10.0) & (d <= 11.0)  # a manhole seen by the patches of 1 m of path
+    R[at] *= 40.0
+    flagged = isolated_spikes(R, d)
+    assert np.all(flagged[at])
+    np.testing.assert_array_equal(np.flatnonzero(flagged), np.flatnonzero((d >= 9.5) & (d <= 11.5)))
+
+
+def test_changes_of_terrain_are_not_defects() -> None:
+    rng = np.random.default_rng(1)
+    R, d = _rough_path(rng)
+    step = R * np.where(d >= 15.0, 100.0, 1.0)  # concrete -> ploughed soil
+    assert not isolated_spikes(step, d).any()
+    long = R * np.where((d >= 10.0) & (d < 13.0), 30.0, 1.0)  # 3 m of rough ground
+    assert not isolated_spikes(long, d).any()
+    assert not isolated_spikes(R, d).any()  # nothing on a uniform stretch
+
+
+def test_spikes_are_scale_and_translation_invariant_and_skip_missing_frames() -> None:
+    rng = np.random.default_rng(2)
+    R, d = _rough_path(rng)
+    R[40:44] *= 50.0
+    R[42] = np.nan  # a frame without a valid patch inside the spike
+    base = isolated_spikes(R, d)
+    assert base[40:44].all() and base.sum() == 4 + 2 * 2  # +-0.5 m: two frames each side
+    np.testing.assert_array_equal(isolated_spikes(1e3 * R, d + 123.0), base)
+    np.testing.assert_array_equal(isolated_spikes(R, d, ratio=1e4), np.zeros_like(base))
+
+
+@pytest.mark.parametrize(
+    ("args", "kwargs", "match"),
+    [
+        (([1.0, 2.0], [0.0]), {}, "same length"),
+        (([1.0, 2.0, 3.0], [0.0, 1.0, 0.5]), {}, "non-decreasing"),
+        (([1.0, 2.0, 3.0], [0.0, 1.0, np.nan]), {}, "finite"),
+        (([1.0, 2.0, 3.0], [0.0, 1.0, 2.0]), {"ratio": 1.0}, "ratio must be"),
+        (([1.0, 2.0, 3.0], [0.0, 1.0, 2.0]), {"window": -1.0}, "window must be"),
+    ],
+)
+def test_isolated_spikes_bad_input(args, kwargs, match) -> None:
+    with pytest.raises(errors.InputError, match=match):
+        isolated_spikes(*args, **kwargs)

@@ -173,3 +173,6 @@ def test_shipped_default_model() -> None:
     }  # fmt: skip
     assert card["size_bytes"] < 5e6
     assert card["command"].startswith("rough-map train")
+    # the reproduction recipe names the training data the shipped model was fitted on
+    recipe = (ROOT / "rough_map" / "cli" / "train.py").read_text()
+    assert f"``{card['training_data']['sha256'][:8]}...``" in recipe

@@ -71,6 +71,23 @@ def test_the_manhole_is_a_spike(mixed, mixed_features):
     assert f["R"][near].max() > 5 * np.median(f["R"][far])
 
 
+def test_default_model_maps_the_mixed_course(mixed, mixed_features):
+    """Issue 5: >= 0.9 class accuracy over the near-field map cells on simulated truth,
+    with the manhole flagged as an isolated defect rather than mapped as rough ground."""
+    from rough_map.cli.map import default_model
+    from rough_map.workflow import analyse, map_accuracy
+
+    trav = load_traverse(mixed)
+    result = analyse(trav, default_model(), features=mixed_features, near_far=False)
+    world = load_world(mixed / trav.spec.height_field)
+    assert map_accuracy(result.map, world) >= 0.9
+    f, pred = mixed_features, result.prediction
+    x_manhole = trav.spec.metadata["defects"][0]["x"]
+    on_it = np.abs(f["x"] + 1.0 - x_manhole) < 0.3  # patch centre over the cover
+    assert pred.defect[on_it].all() and pred.defect.sum() <= 12
+    assert np.all(pred.filtered_class[on_it] == "concrete")
+
+
 def test_reverse_course_gives_the_surfaces_in_reverse(tmp_path):
     segs, defects = course_layout("mixed-reverse", 30.0)
     assert [s.surface for s in segs] == ["gravel", "dirt_road", "concrete"]

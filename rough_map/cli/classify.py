@@ -32,6 +32,7 @@ COLUMNS = (
     "filtered_proba",
     "level",
     "R_m3_per_rad",
+    "defect",
     "label",
 )
 
@@ -44,7 +45,9 @@ def register(sub: argparse._SubParsersAction) -> None:
             "Classify the patch ahead in every frame of a traverse with a model from "
             "`rough-map train`, filter the classes along the path, and write one CSV row per "
             "frame: raw class and probability, filtered class and probability, roughness "
-            "level. Frames without a valid patch get no raw class."
+            "level. Frames without a valid patch get no raw class. Frames that see an "
+            "isolated defect (a short spike of R, such as a manhole) are marked defect=true; "
+            "in the smooth and viterbi modes the filter does not take their class."
         ),
     )
     p.add_argument(
@@ -114,6 +117,7 @@ def run(args: argparse.Namespace) -> int:
                         float(filt_p[i]),
                         pred.level[i],
                         float(cols["R"][i]) if valid else math.nan,
+                        bool(pred.defect[i]),
                         cols["label"][i],
                     )
                 ]
@@ -134,6 +138,7 @@ def run(args: argparse.Namespace) -> int:
                 "mode": pred.mode,
                 "filtered_class_frames": dict(counts),
                 "level_frames": dict(levels),
+                "defect_frames": int(pred.defect.sum()),
             }
         )
         return 0

@@ -40,16 +40,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--length",
         type=float,
-        default=12.0,
+        default=24.0,
         metavar="M",
-        help="length of the simulated mixed course in m (default 12)",
+        help="length of the simulated mixed course in m (default 24: 8 m of each surface)",
     )
     p.add_argument(
         "--image-every",
         type=int,
-        default=4,
+        default=8,
         metavar="N",
-        help="render the stereo pair of every N-th frame (default 4)",
+        help="render the stereo pair of every N-th frame (default 8: every 2 m at 0.5 m/s)",
     )
     p.add_argument(
         "--model",
@@ -203,6 +203,13 @@ def _whole_story(args: argparse.Namespace, t0: float) -> int:
         f"{evaluation['filtered']['macro_f1']:.3f}; accuracy raw "
         f"{evaluation['raw']['accuracy']:.3f}, filtered {evaluation['filtered']['accuracy']:.3f}"
     )
+    if pred.defect.any():
+        at = pred.distance[pred.defect]
+        _say(
+            f"isolated defect: {int(pred.defect.sum())} frames from {at.min():.1f} to "
+            f"{at.max():.1f} m along the path (R spike: the manhole); the filter keeps the "
+            "class of the ground around it"
+        )
     from rough_map.simulate.course import load_world
 
     world = load_world(trav_dir / "world_truth.npz")

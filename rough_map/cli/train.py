@@ -20,10 +20,11 @@ model does not learn one sensor::
     rough-map simulate --out sim/train-106 --course random --length 100 --seed 106 --speed 0.7 --points-per-cell 12 --noise 0.0005 --no-images
     rough-map train sim/train-101 sim/train-102 sim/train-103 sim/train-104 sim/train-105 sim/train-106 --out models/default
 
-(about 13 min on one core: 11 to simulate, 2 to compute the features and fit; the traverses
-take 9.4 GB of clouds). The card records the sha256 of the training features: the code
-at commit 43e9af5 gives ``e94d4b87...``; a later change to the simulator or to the feature
-extraction gives other traverses, and so another hash and another model.
+(about 12 min on this 2-core machine: 10 to simulate, 2 to compute the features and fit;
+the traverses take 9.4 GB of clouds). The card records the sha256 of the training
+features: this version of the simulator and of the feature extraction gives
+``b715e11c...``; a later change to either gives other traverses, and so another hash and
+another model.
 """  # noqa: E501
 
 from __future__ import annotations

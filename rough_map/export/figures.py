@@ -70,12 +70,14 @@ def roughness_along_path(
     path: str | Path,
     *,
     labels: Sequence[str] | None = None,
+    defects: np.ndarray | None = None,
     title: str = "",
 ) -> Path:
     """R (log scale, m^3/rad) and w along the path (m) with 1-sigma bands (Figs. 7, 9, 12).
 
     ISO 8608 class centres A-H are drawn as reference lines on the R panel; the true or
-    predicted labels, if given, shade the background.
+    predicted labels, if given, shade the background; frames flagged in ``defects`` (bool
+    per frame, isolated defects such as a manhole) are marked on the R curve.
     """
     plt, fig = _figure(9, 6)
     ax1 = fig.add_subplot(2, 1, 1)
@@ -96,6 +98,10 @@ def roughness_along_path(
             ax1.text(
                 d[0] if d.size else 0, phi, f" ISO {cls}", color="tab:blue", fontsize=8, va="bottom"
             )
+    if defects is not None and len(defects) == d.size:
+        flagged = np.asarray(defects, dtype=bool) & ok
+        if flagged.any():
+            ax1.plot(d[flagged], R[flagged], "v", color="tab:red", ms=5, label="isolated defect")
     ax1.set_ylabel("R  [m³/rad]")
     ax2.fill_between(d, w - sigma_w, w + sigma_w, where=ok, color="0.8")
     ax2.plot(d[ok], w[ok], "k-", lw=1.2)

@@ -61,6 +61,7 @@ def write_report(
         f["sigma_w"],
         out / "fig_path.png",
         labels=labels,
+        defects=None if result.prediction is None else result.prediction.defect,
         title=f"{name}: roughness along the path",
     )
     frame = _representative_frame(f)

@@ -169,11 +169,13 @@ def build_card(model: Any, model_file: Path, extra: dict[str, Any] | None = None
             "class_weight": "balanced",
             "calibration": "temperature scaling, folds of whole traverses",
             "level_jitter_log10": float(model.level_jitter),
+            "waviness_jitter": float(getattr(model, "waviness_jitter", 0.0)),
         },
         "filter": {
             "mode": model.mode,
             "evidence_per_m": float(model.evidence_per_m_),
             "emission": "min(1, evidence_per_m * step_m) * log p(class | frame)",
+            "defect_ratio": getattr(model, "defect_ratio", None),
             "switch_rate_per_m": {
                 str(c): float(-flt.generator_[i, i]) for i, c in enumerate(flt.classes_)
             },

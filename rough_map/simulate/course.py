@@ -60,11 +60,15 @@ class SensorSpec:
 
 
 def save_world(world: HeightField, path: Path) -> None:
-    """Write a world as .npz (atomic)."""
+    """Write a world as .npz (atomic).
+
+    Uncompressed: float heights at 2 mm hardly compress (by 10 %) and deflating them took
+    longer than simulating the clouds.
+    """
     from rough_map.io.pointcloud import atomic_output
 
     with atomic_output(path) as tmp, open(tmp, "wb") as fh:
-        np.savez_compressed(
+        np.savez(
             fh,
             heights=world.heights.astype(np.float32),
             classes=(world.classes if world.classes is not None else np.zeros(0)).astype(np.int8),

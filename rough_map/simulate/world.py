@@ -209,9 +209,24 @@ def _envelope(
         rng.standard_normal(coarse_shape), length / (step * spacing), mode="wrap"
     )
     g /= g.std() or 1.0
-    rows = np.arange(shape[0]) / step
-    cols = np.arange(shape[1]) / step
-    return ndimage.map_coordinates(g, np.meshgrid(rows, cols, indexing="ij"), order=1)
+    # Bilinear interpolation to the fine grid, one axis at a time (as
+    # ndimage.map_coordinates(order=1) at the fine grid's points, at a fraction of the cost).
+    return (
+        _linear_weights(shape[0], step, g.shape[0])
+        @ g
+        @ _linear_weights(shape[1], step, g.shape[1]).T
+    )
+
+
+def _linear_weights(n: int, step: int, n_coarse: int) -> np.ndarray:
+    """(n, n_coarse) weights of linear interpolation at positions ``arange(n) / step``."""
+    pos = np.arange(n) / step
+    i0 = np.minimum(np.floor(pos).astype(int), n_coarse - 2)
+    frac = pos - i0
+    w = np.zeros((n, n_coarse))
+    w[np.arange(n), i0] = 1.0 - frac
+    w[np.arange(n), i0 + 1] = frac
+    return w
 
 
 # --------------------------------------------------------------------------- the rover
@@ -255,9 +270,19 @@ def drive(
     y = lateral_wander * np.sin(2 * np.pi * x / rng.uniform(15, 30) + phase)
     yaw = np.arctan(np.gradient(y, x)) if n > 1 else np.zeros(n)
     sigma = max(1.0, rover.wheel_radius / 2 / world.spacing)
-    smooth = HeightField(ndimage.gaussian_filter(world.heights, sigma), world.spacing, world.origin)
     c, s = np.cos(yaw), np.sin(yaw)
     hw, ht = rover.wheelbase / 2, rover.track / 2
+    # Smooth only the band of rows the wheels cross (plus the filter's reach): the same
+    # values there as smoothing the whole world, which is mostly terrain the rover never
+    # touches.
+    reach = math.hypot(hw, ht) + abs(y).max() + (4 * sigma + 2) * world.spacing
+    r0 = max(0, int(math.floor((-reach - world.origin[1]) / world.spacing)))
+    r1 = min(world.heights.shape[0], int(math.ceil((reach - world.origin[1]) / world.spacing)) + 1)
+    smooth = HeightField(
+        ndimage.gaussian_filter(world.heights[r0:r1], sigma),
+        world.spacing,
+        (world.origin[0], world.origin[1] + r0 * world.spacing),
+    )
     wheels = {}
     for name, (dx, dy) in {
         "fl": (hw, ht),
