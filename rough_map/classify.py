@@ -1198,10 +1198,9 @@ class TerrainModel:
             raise errors.InputError(
                 f"jitter_copies must be an integer >= 0; got {self.jitter_copies!r}"
             )
-        for name in ("waviness_jitter",):
-            value = getattr(self, name)
-            if not (isinstance(value, Real) and math.isfinite(value) and value >= 0):
-                raise errors.InputError(f"{name} must be >= 0; got {value!r}")
+        w_sd = self.waviness_jitter
+        if not (isinstance(w_sd, Real) and math.isfinite(w_sd) and w_sd >= 0):
+            raise errors.InputError(f"waviness_jitter must be >= 0; got {w_sd!r}")
         ratio = self.defect_ratio
         if ratio is not None and not (
             isinstance(ratio, Real) and math.isfinite(ratio) and ratio > 1

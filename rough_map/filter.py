@@ -436,10 +436,12 @@ def isolated_spikes(
         ("ratio", ratio, 1.0),
         ("window", window, 0.0),
         ("max_length", max_length, 0.0),
-        ("margin", margin, 0.0),
+        ("margin", margin, -np.inf),
     ):
         if not (isinstance(value, Real) and np.isfinite(value) and value > low):
             raise errors.InputError(f"{name} must be a finite number > {low:g}; got {value!r}")
+    if margin < 0:
+        raise errors.InputError(f"margin must be >= 0 (m); got {margin!r}")
     with np.errstate(divide="ignore", invalid="ignore"):
         ln_v = np.where(np.isfinite(v) & (v > 0), np.log(v), np.nan)
     known = np.isfinite(ln_v)

@@ -263,6 +263,23 @@ def map_accuracy(grid: Any, world: Any, layer: str = "class") -> float:
     return float(np.mean(truth == pred))
 
 
+def truth_accuracy(result: TraverseAnalysis) -> dict[str, float]:
+    """Map class accuracy against the simulator's truth, when the traverse has one.
+
+    Returns ``near_class_accuracy`` (the ``class`` layer) and, with near-to-far,
+    ``far_class_accuracy`` (the ``far_class`` layer): fractions of the classified cells
+    whose class is the world's class at the cell centre (:func:`map_accuracy`). Empty
+    without a model or without a ``height_field`` holding a class map.
+    """
+    world = _world_truth(result.traverse)
+    if world is None or world.classes is None or "class" not in result.map.layers:
+        return {}
+    out = {"near_class_accuracy": map_accuracy(result.map, world)}
+    if "far_class" in result.map.layers:
+        out["far_class_accuracy"] = map_accuracy(result.map, world, "far_class")
+    return out
+
+
 def write_tables(result: TraverseAnalysis, out_dir: str | Path) -> dict[str, Path]:
     """``features.csv`` and, with a model, ``labels.csv`` (raw and filtered class per frame)."""
     import csv

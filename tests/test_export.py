@@ -107,6 +107,7 @@ def test_value_bands_names_units_nodata_overviews(tmp_path, utm_map):
         assert names == value_layers(utm_map)
         assert {"count", "last_seen", "p_gravel"} <= set(names) and "class" not in names
         assert ds.tags(1)["units"] == "m^3/rad" and ds.tags(2)["units"] == "1"
+        assert ds.units[:2] == ("m^3/rad", "1")  # GDAL's unit type, as QGIS shows it
         level = ds.tags(names.index("level") + 1)
         assert json.loads(level["categories"]) == ["low", "medium", "high"]
         assert level["VALUE_2"] == "high"

@@ -88,6 +88,27 @@ def test_default_model_maps_the_mixed_course(mixed, mixed_features):
     assert np.all(pred.filtered_class[on_it] == "concrete")
 
 
+def test_map_and_report_commands_on_the_mixed_course(mixed, tmp_path, capsys):
+    """`rough-map map` (GeoTIFFs, tables, accuracy against the truth) and `rough-map report`
+    (the paper's figures and index.html) on a simulated traverse, end to end."""
+    import rasterio
+
+    code = main(["-q", "map", str(mixed), "--out", str(tmp_path / "map"), "--no-png", "--json"])
+    assert code == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["near_class_accuracy"] >= 0.9
+    with rasterio.open(summary["outputs"]["geotiff_class"]) as ds:
+        assert ds.descriptions == ("class",) and ds.colormap(1) and ds.overviews(1)
+    with open(summary["outputs"]["labels"]) as fh:
+        header = fh.readline().strip().split(",")
+    assert {"raw_class", "filtered_class", "level", "defect"} <= set(header)
+    assert main(["-q", "report", str(mixed), "--out", str(tmp_path / "report")]) == 0
+    report = tmp_path / "report"
+    html = (report / "index.html").read_text()
+    for fig in ("fig_path.png", "fig_psd_profile.png", "fig_classes.png", "fig_map_class.png"):
+        assert (report / fig).stat().st_size > 10_000 and fig in html
+
+
 def test_reverse_course_gives_the_surfaces_in_reverse(tmp_path):
     segs, defects = course_layout("mixed-reverse", 30.0)
     assert [s.surface for s in segs] == ["gravel", "dirt_road", "concrete"]

@@ -62,7 +62,7 @@ def default_model() -> Path:
 
 def run(args: argparse.Namespace) -> int:
     from rough_map.export import export_map
-    from rough_map.workflow import analyse, write_tables
+    from rough_map.workflow import analyse, truth_accuracy, write_tables
 
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
@@ -88,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
         "map_shape": list(result.map.shape),
         "resolution_m": args.resolution,
         **result.far_report,
+        **truth_accuracy(result),
         "outputs": paths,
     }
     if args.json:
@@ -100,6 +101,14 @@ def run(args: argparse.Namespace) -> int:
         print(
             f"near field {r['near_area_m2']:.1f} m^2, with near-to-far "
             f"{r['near_far_area_m2']:.1f} m^2 (x{r['area_ratio']:.1f})",
+            file=sys.stderr,
+        )
+    if "near_class_accuracy" in summary:
+        far = summary.get("far_class_accuracy")
+        print(
+            f"against the simulator's truth: near-field class accuracy "
+            f"{summary['near_class_accuracy']:.3f}"
+            + ("" if far is None else f", far-field {far:.3f}"),
             file=sys.stderr,
         )
     return 0

@@ -23,7 +23,7 @@ model does not learn one sensor::
 (about 12 min on this 2-core machine: 10 to simulate, 2 to compute the features and fit;
 the traverses take 9.4 GB of clouds). The card records the sha256 of the training
 features: this version of the simulator and of the feature extraction gives
-``b715e11c...``; a later change to either gives other traverses, and so another hash and
+``66836b28...``; a later change to either gives other traverses, and so another hash and
 another model.
 """  # noqa: E501
 

@@ -6,8 +6,8 @@ map becomes (profiles in :mod:`rough_map.export.profiles`):
 ``<name>.tif``
     float32, one band per value layer, described by the layer name (``R``, ``w``,
     ``sigma_R``, ``sigma_w``, ``level``, ``count``, ``last_seen``, ``p_<class>``, then the
-    far-field ``far_count``, ``far_p_<class>``...), with band tags ``units``,
-    ``long_name`` and ``layer``. Nodata: NaN.
+    far-field ``far_count``, ``far_p_<class>``...), with GDAL unit types and band tags
+    ``units``, ``long_name`` and ``layer``. Nodata: NaN.
 ``<name>_class.tif``, ``<name>_far_class.tif``
     uint8, one band described ``class`` (``far_class``): the class index, with a colour
     table, the class names in tags (``class_names`` as JSON and ``CLASS_<i>=<name>``).
@@ -243,6 +243,8 @@ def write_values_geotiff(
         for b, name in enumerate(names, start=1):
             info = grid.info(name)
             ds.set_band_description(b, name)
+            if info.units:
+                ds.set_band_unit(b, info.units)  # GDAL's band unit type
             tags = {"units": info.units, "long_name": info.description, "layer": name}
             if info.categories:
                 tags["categories"] = json.dumps(list(info.categories))
@@ -289,6 +291,7 @@ def write_class_geotiff(
 
     def describe(ds: Any) -> None:
         ds.set_band_description(1, layer)
+        ds.set_band_unit(1, "1")
         ds.update_tags(
             1,
             units="1",

@@ -211,22 +211,17 @@ def _envelope(
     g /= g.std() or 1.0
     # Bilinear interpolation to the fine grid, one axis at a time (as
     # ndimage.map_coordinates(order=1) at the fine grid's points, at a fraction of the cost).
-    return (
-        _linear_weights(shape[0], step, g.shape[0])
-        @ g
-        @ _linear_weights(shape[1], step, g.shape[1]).T
-    )
+    c0, fc = _linear_index(shape[1], step, g.shape[1])
+    along = g[:, c0] * (1.0 - fc) + g[:, c0 + 1] * fc
+    r0, fr = _linear_index(shape[0], step, g.shape[0])
+    return along[r0] * (1.0 - fr)[:, None] + along[r0 + 1] * fr[:, None]
 
 
-def _linear_weights(n: int, step: int, n_coarse: int) -> np.ndarray:
-    """(n, n_coarse) weights of linear interpolation at positions ``arange(n) / step``."""
+def _linear_index(n: int, step: int, n_coarse: int) -> tuple[np.ndarray, np.ndarray]:
+    """Left coarse index and fraction of the fine positions ``arange(n) / step``."""
     pos = np.arange(n) / step
     i0 = np.minimum(np.floor(pos).astype(int), n_coarse - 2)
-    frac = pos - i0
-    w = np.zeros((n, n_coarse))
-    w[np.arange(n), i0] = 1.0 - frac
-    w[np.arange(n), i0 + 1] = frac
-    return w
+    return i0, pos - i0
 
 
 # --------------------------------------------------------------------------- the rover
@@ -275,7 +270,7 @@ def drive(
     # Smooth only the band of rows the wheels cross (plus the filter's reach): the same
     # values there as smoothing the whole world, which is mostly terrain the rover never
     # touches.
-    reach = math.hypot(hw, ht) + abs(y).max() + (4 * sigma + 2) * world.spacing
+    reach = math.hypot(hw, ht) + float(np.abs(y).max(initial=0.0)) + (4 * sigma + 2) * world.spacing
     r0 = max(0, int(math.floor((-reach - world.origin[1]) / world.spacing)))
     r1 = min(world.heights.shape[0], int(math.ceil((reach - world.origin[1]) / world.spacing)) + 1)
     smooth = HeightField(
