@@ -6,11 +6,48 @@ import argparse
 import json
 import math
 import sys
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from rough_map.patch import DEFAULT_AHEAD, DEFAULT_SIZE, DEFAULT_SPACING, PatchSpec
+
+
+def add_traverses_arg(parser: argparse.ArgumentParser, *, many: bool = False) -> None:
+    """The positional TRAVERSE (or TRAVERSE... with ``many``): folder, file or table."""
+    parser.add_argument(
+        "traverses" if many else "traverse",
+        nargs="+" if many else None,
+        type=Path,
+        metavar="TRAVERSE",
+        help=("labelled " if many else "") + "traverse folder or file, or a features table (.csv)",
+    )
+
+
+def add_model_arg(parser: argparse.ArgumentParser, *, required: bool = True) -> None:
+    """``--model M``: a model from ``rough-map train`` (optional: the shipped default)."""
+    parser.add_argument(
+        "--model",
+        type=Path,
+        required=required,
+        default=None,
+        metavar="M",
+        help="model name or file (models/NAME or models/NAME.skops)"
+        + ("" if required else "; default models/default shipped with rough_map"),
+    )
+
+
+def add_mode_arg(parser: argparse.ArgumentParser, default: str | None = None) -> None:
+    """``--mode``: the path filter's mode."""
+    parser.add_argument(
+        "--mode",
+        choices=("forward", "smooth", "viterbi"),
+        default=default,
+        help="filter mode (default: "
+        + (default or "the model's")
+        + "; forward is online, smooth and viterbi use the whole traverse)",
+    )
 
 
 def add_patch_args(parser: argparse.ArgumentParser) -> None:

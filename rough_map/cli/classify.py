@@ -17,7 +17,7 @@ import sys
 from collections import Counter
 from pathlib import Path
 
-from rough_map.cli._common import emit_json, table
+from rough_map.cli._common import add_mode_arg, add_model_arg, add_traverses_arg, emit_json, table
 
 COLUMNS = (
     "frame",
@@ -50,25 +50,10 @@ def register(sub: argparse._SubParsersAction) -> None:
             "in the smooth and viterbi modes the filter does not take their class."
         ),
     )
-    p.add_argument(
-        "traverse",
-        type=Path,
-        metavar="TRAVERSE",
-        help="traverse folder or file, or a features table (.csv)",
-    )
-    p.add_argument(
-        "--model",
-        type=Path,
-        required=True,
-        metavar="M",
-        help="model name or file (models/NAME or models/NAME.skops)",
-    )
+    add_traverses_arg(p)
+    add_model_arg(p)
     p.add_argument("--out", type=Path, required=True, metavar="labels.csv")
-    p.add_argument(
-        "--mode",
-        choices=("forward", "smooth", "viterbi"),
-        help="filter mode (default: the model's)",
-    )
+    add_mode_arg(p)
     p.add_argument("--json", action="store_true", help="print a JSON summary")
     p.set_defaults(func=run)
 

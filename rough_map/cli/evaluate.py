@@ -23,7 +23,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from rough_map.cli._common import emit_json, table
+from rough_map.cli._common import (
+    add_mode_arg,
+    add_model_arg,
+    add_traverses_arg,
+    emit_json,
+    table,
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -37,25 +43,9 @@ def register(sub: argparse._SubParsersAction) -> None:
             "and skipped."
         ),
     )
-    p.add_argument(
-        "traverses",
-        nargs="+",
-        type=Path,
-        metavar="TRAVERSE",
-        help="labelled traverse folder or file, or a features table (.csv)",
-    )
-    p.add_argument(
-        "--model",
-        type=Path,
-        required=True,
-        metavar="M",
-        help="model name or file (models/NAME or models/NAME.skops)",
-    )
-    p.add_argument(
-        "--mode",
-        choices=("forward", "smooth", "viterbi"),
-        help="filter mode (default: the model's)",
-    )
+    add_traverses_arg(p, many=True)
+    add_model_arg(p)
+    add_mode_arg(p)
     p.add_argument("--json", action="store_true", help="print the results as JSON")
     p.add_argument(
         "--plot",

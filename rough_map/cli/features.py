@@ -48,9 +48,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="for a traverse: ignore the IMU roll/pitch of the frames",
     )
-    p.add_argument("--points-from", choices=("auto", "cloud", "stereo"), default="auto",
-                   help="for a traverse: the frames' clouds, or their stereo pairs "
-                        "(auto: the cloud when there is one)")
+    p.add_argument(
+        "--points-from",
+        choices=("auto", "cloud", "stereo"),
+        default="auto",
+        help="for a traverse: the frames' clouds, or their stereo pairs "
+        "(auto: the cloud when there is one)",
+    )
     p.set_defaults(func=run)
 
 

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from rough_map.cli._common import emit_json, table
+from rough_map.cli._common import add_model_arg, add_traverses_arg, emit_json, table
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -22,14 +22,8 @@ def register(sub: argparse._SubParsersAction) -> None:
             "per layer, DIR/labels.csv and DIR/features.csv."
         ),
     )
-    p.add_argument("traverse", type=Path, metavar="TRAVERSE")
-    p.add_argument(
-        "--model",
-        type=Path,
-        default=None,
-        metavar="M",
-        help="terrain model (default: models/default shipped with rough_map)",
-    )
+    add_traverses_arg(p)
+    add_model_arg(p, required=False)
     p.add_argument("--out", type=Path, required=True, metavar="DIR")
     p.add_argument(
         "--resolution",

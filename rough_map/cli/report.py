@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from rough_map.cli._common import add_model_arg, add_traverses_arg
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -21,15 +23,9 @@ def register(sub: argparse._SubParsersAction) -> None:
             "and, when the frames are labelled, the confusion matrices."
         ),
     )
-    p.add_argument("traverse", type=Path, metavar="TRAVERSE")
+    add_traverses_arg(p)
     p.add_argument("--out", type=Path, required=True, metavar="DIR")
-    p.add_argument(
-        "--model",
-        type=Path,
-        default=None,
-        metavar="M",
-        help="terrain model (default: models/default)",
-    )
+    add_model_arg(p, required=False)
     p.add_argument(
         "--resolution",
         type=float,

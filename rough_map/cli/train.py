@@ -34,7 +34,7 @@ import shlex
 import sys
 from pathlib import Path
 
-from rough_map.cli._common import add_patch_args, emit_json, table
+from rough_map.cli._common import add_patch_args, add_traverses_arg, emit_json, table
 
 #: rough_map.classify.CLASSIFIERS, spelled out so that the parser does not import sklearn.
 CLASSIFIERS = ("logistic", "hgb", "forest")
@@ -53,13 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
             "written by `rough-map features`."
         ),
     )
-    p.add_argument(
-        "traverses",
-        nargs="+",
-        type=Path,
-        metavar="TRAVERSE",
-        help="labelled traverse folder or file, or a features table (.csv)",
-    )
+    add_traverses_arg(p, many=True)
     p.add_argument(
         "--out",
         type=Path,
@@ -77,7 +71,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--mode",
         choices=("forward", "smooth", "viterbi"),
         default="smooth",
-        help="default filter mode of classify/evaluate (default smooth)",
+        help="default filter mode of classify/evaluate/map (default smooth)",
     )
     p.add_argument(
         "--levels",
