@@ -109,6 +109,27 @@ def test_map_and_report_commands_on_the_mixed_course(mixed, tmp_path, capsys):
         assert (report / fig).stat().st_size > 10_000 and fig in html
 
 
+def test_map_of_a_traverse_without_a_valid_patch_is_all_nodata(tmp_path, capsys):
+    """Every cloud too sparse for a patch: exit 0, an all-nodata map, a warning line."""
+    import rasterio
+
+    (tmp_path / "clouds").mkdir()
+    frames = []
+    for i in range(4):
+        np.save(tmp_path / "clouds" / f"{i}.npy", np.zeros((30, 3), dtype=np.float32))
+        frames.append({"t": 0.5 * i, "pose": {"x": 0.25 * i, "y": 0.0, "yaw": 0.0},
+                       "cloud": f"clouds/{i}.npy"})  # fmt: skip
+    (tmp_path / "traverse.json").write_text(
+        json.dumps({"schema_version": "1.0", "name": "sparse", "frames": frames})
+    )
+    assert main(["map", str(tmp_path), "--out", str(tmp_path / "map"), "--no-png"]) == 0
+    err = capsys.readouterr().err
+    assert "EmptyMapWarning: none of the 4 frames has a valid patch" in err
+    assert "Traceback" not in err and "warnings.warn" not in err
+    with rasterio.open(tmp_path / "map" / "map.tif") as ds:
+        assert np.isnan(ds.read(1)).all()
+
+
 def test_reverse_course_gives_the_surfaces_in_reverse(tmp_path):
     segs, defects = course_layout("mixed-reverse", 30.0)
     assert [s.surface for s in segs] == ["gravel", "dirt_road", "concrete"]

@@ -8,6 +8,7 @@ import logging
 import os
 import pkgutil
 import sys
+import warnings
 
 from rough_map import __version__
 from rough_map.errors import RoughMapError
@@ -69,9 +70,17 @@ def main(argv: list[str] | None = None) -> int:
     _configure_logging(args.verbose, args.quiet)
     args.progress = not args.quiet and sys.stderr.isatty()
     try:
-        return _run(args)
+        with warnings.catch_warnings():
+            # rough_map's warnings (an all-nodata map...) read as log lines, not as the
+            # source line that raised them; -q silences them with the other warnings.
+            warnings.showwarning = _log_warning
+            return _run(args)
     finally:
         logger.handlers[:], logger.level, logger.propagate = saved
+
+
+def _log_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    logging.getLogger("rough_map.cli").warning("%s: %s", category.__name__, message)
 
 
 def _run(args: argparse.Namespace) -> int:
