@@ -138,7 +138,7 @@ def _whole_story(args: argparse.Namespace, t0: float) -> int:
     from rough_map.export.report import write_report
     from rough_map.io.traverse import load_traverse
     from rough_map.simulate.course import simulate
-    from rough_map.workflow import analyse, level_edges, map_accuracy, write_tables
+    from rough_map.workflow import analyse, level_edges, truth_accuracy, write_tables
 
     out: Path = args.out
     if out.exists():
@@ -210,18 +210,15 @@ def _whole_story(args: argparse.Namespace, t0: float) -> int:
             f"{at.max():.1f} m along the path (R spike: the manhole); the filter keeps the "
             "class of the ground around it"
         )
-    from rough_map.simulate.course import load_world
-
-    world = load_world(trav_dir / "world_truth.npz")
+    truth = truth_accuracy(result)
     _say(
         f"map: {result.map.shape[1]} x {result.map.shape[0]} cells of 0.1 m; class accuracy "
-        f"{map_accuracy(result.map, world):.3f} over the near-field cells"
+        f"{truth['near_class_accuracy']:.3f} over the near-field cells"
     )
     if result.far_report:
         r = result.far_report
-        acc = ""
-        if "far_class" in result.map.layers:
-            acc = f", far-field class accuracy {map_accuracy(result.map, world, 'far_class'):.3f}"
+        far = truth.get("far_class_accuracy")
+        acc = "" if far is None else f", far-field class accuracy {far:.3f}"
         _say(
             f"near-to-far: {r['near_area_m2']:.1f} m^2 seen by geometry, "
             f"{r['near_far_area_m2']:.1f} m^2 with appearance (x{r['area_ratio']:.1f}){acc}"
