@@ -13,6 +13,7 @@ from rough_map.filter import (
     PathFilter,
     estimate_generator,
     forward,
+    isolated_spikes,
     smooth,
     transition_matrices,
     viterbi,
@@ -140,3 +141,38 @@ def test_renaming_classes_permutes_estimator_output(fr, perm) -> None:
         base.predict_proba(proba, distance=dist)[:, inv],
         atol=1e-9,
     )
+
+
+@st.composite
+def rough_paths(draw: st.DrawFn) -> tuple[np.ndarray, np.ndarray]:
+    """R along a path (m^3/rad, within a factor of 2.5 of 1e-4) at dyadic frame spacings (m)."""
+    n = draw(st.integers(3, 60))
+    steps = draw(arrays(np.int64, n - 1, elements=st.integers(0, 4)))
+    d = np.concatenate([[0.0], np.cumsum(steps * 0.125)])
+    R = 1e-4 * 2.5 ** draw(arrays(float, n, elements=st.floats(-1.0, 1.0)))
+    return R, d
+
+
+@SETTINGS
+@given(rough_paths(), st.integers(-400, 400))
+def test_defect_frames_do_not_depend_on_where_the_path_starts(path, shift) -> None:
+    R, d = path
+    np.testing.assert_array_equal(isolated_spikes(R, d + 0.25 * shift), isolated_spikes(R, d))
+
+
+@SETTINGS
+@given(rough_paths())
+def test_ground_within_a_factor_of_2_5_has_no_defect(path) -> None:
+    R, d = path
+    assert not isolated_spikes(R, d).any()  # no two frames differ by more than 6.25 < 8
+
+
+@SETTINGS
+@given(rough_paths(), st.floats(0.0, 1.0), st.floats(100.0, 1e4))
+def test_a_short_strong_spike_is_always_found(path, start, factor) -> None:
+    R, d = path
+    spiked = np.where((d >= d[-1] * start) & (d <= d[-1] * start + 0.5), factor * R, R)
+    hit = spiked > R
+    if hit.sum() and (~hit).sum() >= 2 * hit.sum() + 1:  # the median stays on the ground
+        flagged = isolated_spikes(spiked, d, window=1e3)
+        assert flagged[hit].all()
