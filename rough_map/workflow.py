@@ -48,6 +48,15 @@ class TraverseAnalysis:
     model: Any = None
     far: list = field(default_factory=list)
     far_report: dict = field(default_factory=dict)
+    _truth: Any = field(default=None, init=False, repr=False)
+    _truth_read: bool = field(default=False, init=False, repr=False)
+
+    def truth(self) -> Any:
+        """The simulator's world (:class:`~rough_map.types.HeightField` with its class map),
+        read once from the traverse's ``height_field``; None when it has none."""
+        if not self._truth_read:
+            self._truth, self._truth_read = _world_truth(self.traverse), True
+        return self._truth
 
 
 def analyse(
@@ -211,7 +220,7 @@ def _near_to_far(result: TraverseAnalysis, weight: float, progress: bool):
             grid, cells, fp.proba, weight=weight, group="far", t=getattr(fp, "t", None)
         )
     report = coverage_report(grid)
-    world = _world_truth(result.traverse)
+    world = result.truth()
     if world is not None and far:
         report["far_accuracy_by_distance"] = n2f.far_field_accuracy(far, world)
     return far, report
@@ -271,7 +280,7 @@ def truth_accuracy(result: TraverseAnalysis) -> dict[str, float]:
     whose class is the world's class at the cell centre (:func:`map_accuracy`). Empty
     without a model or without a ``height_field`` holding a class map.
     """
-    world = _world_truth(result.traverse)
+    world = result.truth()
     if world is None or world.classes is None or "class" not in result.map.layers:
         return {}
     out = {"near_class_accuracy": map_accuracy(result.map, world)}
