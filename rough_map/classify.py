@@ -534,12 +534,13 @@ class RoughnessLevels(BaseModel):
 
 
 def load_roughness_levels(path: str | Path | None = None) -> RoughnessLevels:
-    """Read roughness levels from YAML/JSON (safe loading); None gives the defaults.
+    """Read roughness levels from YAML/JSON (safe loading).
 
     Parameters
     ----------
     path : str or Path, optional
-        A file like ``configs/roughness_levels.yaml``.
+        A file like ``configs/roughness_levels.yaml``; None reads the one shipped with
+        rough_map (:func:`rough_map.resources.config_file`).
 
     Returns
     -------
@@ -550,9 +551,12 @@ def load_roughness_levels(path: str | Path | None = None) -> RoughnessLevels:
     FileFormatError, SchemaError
         Unreadable file, or content that does not follow :class:`RoughnessLevels`.
     """
-    if path is None:
-        return RoughnessLevels()
     from rough_map.config import load_model
+
+    if path is None:
+        from rough_map.resources import config_file
+
+        path = config_file("roughness_levels.yaml")
 
     return load_model(path, RoughnessLevels)
 
@@ -1562,17 +1566,24 @@ def feature_tables(
     return tables
 
 
-def scores(y_true: ArrayLike, y_pred: ArrayLike) -> dict[str, Any]:
+def scores(
+    y_true: ArrayLike, y_pred: ArrayLike, classes: Sequence[str] | None = None
+) -> dict[str, Any]:
     """Confusion matrix and per-class and overall scores, from :mod:`sklearn.metrics`.
 
-    The classes are those in ``y_true`` or ``y_pred`` (sorted), as scikit-learn's defaults
-    take them, so every number equals the corresponding ``sklearn.metrics`` call on the same
-    labels.
+    The classes are ``classes`` if given (they must hold every true and predicted class),
+    else those in ``y_true`` or ``y_pred`` (sorted), as scikit-learn's defaults take them,
+    so every number equals the corresponding ``sklearn.metrics`` call on the same labels.
+    The macro-F1 averages the F1 over the classes present in ``y_true`` only
+    (``scored_classes``): a class predicted but never true is not averaged in.
 
     Parameters
     ----------
     y_true, y_pred : array_like of str, shape (n,)
         True and predicted class per scored frame.
+    classes : sequence of str, optional
+        Rows and columns of the confusion matrix, in this order (e.g. the same for raw and
+        filtered predictions).
 
     Returns
     -------
@@ -1580,7 +1591,8 @@ def scores(y_true: ArrayLike, y_pred: ArrayLike) -> dict[str, Any]:
         ``classes``; ``confusion_matrix`` (counts, rows true, columns predicted);
         ``confusion_matrix_normalized`` (rows divided by their sum, the recall on the
         diagonal; a class never true has a row of zeros); ``precision``, ``recall``,
-        ``f1`` and ``support`` per class (dicts); ``accuracy``; ``macro_f1``; ``frames``.
+        ``f1`` and ``support`` per class (dicts); ``accuracy``; ``macro_f1``;
+        ``scored_classes`` (the true classes the macro-F1 averages); ``frames``.
     """
     from sklearn.metrics import (
         accuracy_score,
@@ -1594,7 +1606,15 @@ def scores(y_true: ArrayLike, y_pred: ArrayLike) -> dict[str, Any]:
     p = np.asarray(y_pred).astype(str)
     if len(t) == 0:
         raise errors.InputError("no frames to score")
-    classes = unique_labels(t, p)
+    present = unique_labels(t)
+    if classes is None:
+        classes = unique_labels(t, p)
+    else:
+        given = [str(c) for c in classes]
+        missing = sorted({str(c) for c in unique_labels(t, p)} - set(given))
+        if missing:
+            raise errors.InputError(f"classes {given} lack the scored classes {missing}")
+        classes = np.asarray(given)
     cm = confusion_matrix(t, p, labels=classes)
     rows = cm.sum(axis=1, keepdims=True)
     norm = np.divide(cm, rows, out=np.zeros(cm.shape), where=rows > 0)
@@ -1609,6 +1629,7 @@ def scores(y_true: ArrayLike, y_pred: ArrayLike) -> dict[str, Any]:
         "f1": dict(zip(names, map(float, f1), strict=True)),
         "support": dict(zip(names, map(int, sup), strict=True)),
         "accuracy": float(accuracy_score(t, p)),
-        "macro_f1": float(f1_score(t, p, average="macro", zero_division=0)),
+        "macro_f1": float(f1_score(t, p, labels=present, average="macro", zero_division=0)),
+        "scored_classes": [str(c) for c in present],
         "frames": int(len(t)),
     }

@@ -17,6 +17,11 @@ def evaluate_model(model: Any, tables: list[Any], mode: str | None = None) -> di
     :func:`rough_map.classify.scores` (sklearn.metrics), for the raw classifier output and
     for the path-filtered classes.
 
+    Raw and filtered results have the same ``classes``, in the same order: every class that
+    is true or predicted (raw or filtered) on a scored frame, sorted. The macro-F1 is the
+    mean F1 over the classes present in the truth, ``scored_classes``; a class the model
+    predicts but that is never true lowers the recall of the true classes, not the average.
+
     Parameters
     ----------
     model : TerrainModel
@@ -29,9 +34,10 @@ def evaluate_model(model: Any, tables: list[Any], mode: str | None = None) -> di
     Returns
     -------
     dict
-        ``mode``, ``frames`` (total, scored, unlabelled, invalid), ``raw`` and ``filtered``
-        (each with ``classes``, ``confusion_matrix``, ``confusion_matrix_normalized``,
-        ``accuracy``, ``macro_f1``, per-class scores) and ``per_traverse``.
+        ``mode``, ``frames`` (total, scored, unlabelled, invalid), ``scored_classes``,
+        ``raw`` and ``filtered`` (each with ``classes``, ``confusion_matrix``,
+        ``confusion_matrix_normalized``, ``accuracy``, ``macro_f1``, ``scored_classes``,
+        per-class scores) and ``per_traverse``.
     """
     from rough_map.classify import scores
 
@@ -53,12 +59,14 @@ def evaluate_model(model: Any, tables: list[Any], mode: str | None = None) -> di
         raw.append(pred.raw_class[scored])
         filtered.append(pred.filtered_class[scored])
         if scored.any():
-            r = scores(labels[scored], pred.raw_class[scored])
-            f = scores(labels[scored], pred.filtered_class[scored])
+            cls = _classes(labels[scored], pred.raw_class[scored], pred.filtered_class[scored])
+            r = scores(labels[scored], pred.raw_class[scored], cls)
+            f = scores(labels[scored], pred.filtered_class[scored], cls)
             per_traverse.append(
                 {
                     "name": tab.name,
                     "frames": int(scored.sum()),
+                    "scored_classes": r["scored_classes"],
                     "raw": {"accuracy": r["accuracy"], "macro_f1": r["macro_f1"]},
                     "filtered": {"accuracy": f["accuracy"], "macro_f1": f["macro_f1"]},
                 }
@@ -68,11 +76,19 @@ def evaluate_model(model: Any, tables: list[Any], mode: str | None = None) -> di
             f"no frame to score: of {counts['total']} frames, {counts['unlabelled']} have no "
             f"label and {counts['invalid']} no valid patch"
         )
-    y = np.concatenate(truth)
-    return {
+    y, r, f = np.concatenate(truth), np.concatenate(raw), np.concatenate(filtered)
+    cls = _classes(y, r, f)
+    out = {
         "mode": used_mode,
         "frames": counts,
-        "raw": scores(y, np.concatenate(raw)),
-        "filtered": scores(y, np.concatenate(filtered)),
+        "raw": scores(y, r, cls),
+        "filtered": scores(y, f, cls),
         "per_traverse": per_traverse,
     }
+    out["scored_classes"] = out["raw"]["scored_classes"]
+    return out
+
+
+def _classes(*labels: np.ndarray) -> list[str]:
+    """Every class in ``labels`` (true, raw, filtered), sorted: one order for all matrices."""
+    return sorted({str(v) for lab in labels for v in lab})

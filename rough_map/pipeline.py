@@ -8,7 +8,8 @@ For each frame of a :class:`~rough_map.io.traverse.Traverse` this
 4. estimates R, w and their uncertainty along the direction of travel, and the same across
    it (anisotropy), with the gap policy of :mod:`rough_map.psd`;
 5. records whether the patch is valid, and why not: too few points, too many empty cells,
-   or a patch the estimator refuses. An invalid frame never stops the run.
+   a patch the estimator refuses, no stereo pair to take the points from, an unreadable
+   file. An invalid frame never stops the run.
 
 The result is a :class:`FeatureTable`: one row per frame with the columns of
 :data:`COLUMNS`, plus the patch-mean log10 PSD (``psd_01`` ... ) that the classifier uses.
@@ -17,6 +18,7 @@ The result is a :class:`FeatureTable`: one row per frame with the columns of
 from __future__ import annotations
 
 import csv
+import json
 import logging
 import math
 from dataclasses import dataclass, field
@@ -213,41 +215,28 @@ def traverse_features(
         traverse = load_traverse(traverse)
     if source not in ("auto", "cloud", "stereo"):
         raise InputError(f"source must be 'auto', 'cloud' or 'stereo', got {source!r}")
+    if source == "stereo" and traverse.spec.calibration is None:
+        raise InputError(f"{traverse.name}: stereo needs a 'calibration' in the traverse")
     spec = spec or PatchSpec()
-    stereo = None
+    stereo = _StereoSource(traverse, spec)  # reads nothing until a frame needs it
     n = len(traverse)
     rows: list[dict] = []
     spectra: list[np.ndarray | None] = []
     omega = None
     for i in tqdm(range(n), desc=f"features {traverse.name}", unit="frame", disable=not progress):
         frame = traverse.frames[i]
-        use_stereo = source == "stereo" or (source == "auto" and frame.cloud is None)
-        try:
-            if use_stereo:
-                stereo = stereo or _StereoSource(traverse, spec)
-                points = stereo.cloud(i)
-            else:
-                points = traverse.load_cloud(i)
-        except FileFormatError as exc:
-            row, om, psd = (
-                {"valid": False, "reason": f"unreadable: {exc}", "n_points": 0},
-                None,
-                None,
-            )
-        else:
-            roll = pitch = None
-            if use_imu and frame.imu is not None:
-                roll, pitch = frame.imu.roll, frame.imu.pitch
-            row, om, psd = frame_features(
-                points,
-                spec,
-                roll=roll,
-                pitch=pitch,
-                method=method,
-                subtract_noise=subtract_noise,
-                min_points=min_points,
-                min_fill=min_fill,
-            )
+        row, om, psd = _frame_row(
+            traverse,
+            i,
+            spec,
+            source,
+            stereo,
+            use_imu=use_imu,
+            method=method,
+            subtract_noise=subtract_noise,
+            min_points=min_points,
+            min_fill=min_fill,
+        )
         if om is not None:
             omega = om
         if not row["valid"]:
@@ -288,24 +277,60 @@ def _columns(rows: list[dict]) -> dict[str, np.ndarray]:
     return cols
 
 
+def _frame_row(
+    traverse,
+    i: int,
+    spec: PatchSpec,
+    source: str,
+    stereo: _StereoSource,
+    *,
+    use_imu: bool,
+    **options,
+) -> tuple[dict, np.ndarray | None, np.ndarray | None]:
+    """:func:`frame_features` of frame ``i``, or an invalid row saying why there are no
+    points: no stereo pair, an unreadable file."""
+    frame = traverse.frames[i]
+    use_stereo = source == "stereo" or (source == "auto" and frame.cloud is None)
+    if use_stereo and (frame.left is None or frame.right is None):
+        # Stereo is often recorded at a lower rate than the clouds: not an error of the run.
+        return {"valid": False, "reason": "no stereo pair", "n_points": 0}, None, None
+    try:
+        points = stereo.cloud(i) if use_stereo else traverse.load_cloud(i)
+    except FileFormatError as exc:
+        return {"valid": False, "reason": f"unreadable: {exc}", "n_points": 0}, None, None
+    roll = pitch = None
+    if use_imu and frame.imu is not None:
+        roll, pitch = frame.imu.roll, frame.imu.pitch
+    return frame_features(points, spec, roll=roll, pitch=pitch, **options)
+
+
 class _StereoSource:
     """Clouds from a traverse's stereo pairs (lazy, so clouds-only runs need no OpenCV)."""
 
     def __init__(self, traverse, spec: PatchSpec) -> None:
-        from rough_map.io.stereo import StereoCalibration
-
-        if traverse.spec.calibration is None:
-            raise InputError(f"{traverse.name}: stereo needs a 'calibration' in the traverse")
         self.traverse = traverse
         self.spec = spec
-        self.calib = StereoCalibration.model_validate(traverse.spec.calibration.model_dump())
+        self._calib = None
+
+    @property
+    def calib(self):
+        from rough_map.io.stereo import StereoCalibration
+
+        if self._calib is None:
+            if self.traverse.spec.calibration is None:
+                raise InputError(
+                    f"{self.traverse.name}: stereo needs a 'calibration' in the traverse"
+                )
+            self._calib = StereoCalibration.model_validate(
+                self.traverse.spec.calibration.model_dump()
+            )
+        return self._calib
 
     def cloud(self, i: int) -> np.ndarray:
+        """The cloud of frame ``i``'s stereo pair (vehicle frame, m), over the patch."""
         from rough_map.io.stereo import read_image, stereo_to_cloud
 
         frame = self.traverse.frames[i]
-        if frame.left is None or frame.right is None:
-            raise InputError(f"{self.traverse.name}: frames[{i}] has no stereo pair")
         left = read_image(self.traverse.resolve(frame.left))
         right = read_image(self.traverse.resolve(frame.right))
         return stereo_to_cloud(
@@ -320,9 +345,82 @@ class _StereoSource:
 
 # --------------------------------------------------------------------------- files
 
+#: ``format`` of the metadata of a features table.
+FEATURES_FORMAT = "rough_map features"
+#: Version of that metadata; a reader refuses a newer one.
+FEATURES_FORMAT_VERSION = 1
+
+#: Units of the columns of a features table ("" for counts, flags, text and ratios).
+COLUMN_UNITS = {
+    "frame": "",
+    "t": "s",
+    "x": "m",
+    "y": "m",
+    "yaw": "rad",
+    "R": "m³/rad",
+    "w": "",
+    "sigma_R": "m³/rad",
+    "sigma_w": "",
+    "rms": "m",
+    "iso_class": "",
+    "n_points": "",
+    "valid": "",
+    "reason": "",
+    "label": "",
+    "R_lat": "m³/rad",
+    "w_lat": "",
+    "fit_residual": "",
+    "fill": "",
+    "point_noise": "m",
+    "noise_psd": "m³/rad",
+    "level_angle": "rad",
+}
+
+
+def features_metadata_path(path: str | Path) -> Path:
+    """Where the metadata of a features CSV lives: ``features.csv`` -> ``features.csv.json``."""
+    path = Path(path)
+    return path.with_name(path.name + ".json")
+
+
+def features_metadata(table: FeatureTable) -> dict:
+    """The metadata of a features table: format, traverse name, the wavenumbers (rad/m) of
+    the ``psd_NN`` columns, and the units of every column.
+
+    A CSV keeps it in a JSON file beside it (:func:`features_metadata_path`), so that the CSV
+    itself is plain (first line the header); a Parquet file in its key-value metadata under
+    ``rough_map``.
+    """
+    from rough_map import __version__
+
+    names = table.spectrum_names()
+    return {
+        "format": FEATURES_FORMAT,
+        "format_version": FEATURES_FORMAT_VERSION,
+        "name": table.name,
+        "rough_map_version": __version__,
+        "frames": len(table),
+        "omega_rad_per_m": [float(o) for o in table.omega],
+        "spectrum_columns": names,
+        "units": {**COLUMN_UNITS, **dict.fromkeys(names, "log10(m³/rad)")},
+    }
+
 
 def write_features(table: FeatureTable, path: str | Path) -> Path:
-    """Write a features table as .csv, or .parquet (needs pyarrow); atomic."""
+    """Write a features table as .csv (plus ``<path>.json``), or .parquet (needs pyarrow).
+
+    The CSV is plain: its first line is the header, so ``csv.DictReader`` and
+    ``pandas.read_csv`` read it with no options. Its metadata (:func:`features_metadata`:
+    the traverse name and the wavenumbers of the ``psd_NN`` columns, which
+    :func:`read_features` needs) is written to ``<path>.json`` beside it, e.g.
+    ``features.csv.json``. Parquet keeps the same metadata in its key-value metadata.
+    Both files are written atomically, the metadata first.
+
+    Returns
+    -------
+    Path
+        ``path`` (the table; the metadata is at :func:`features_metadata_path`).
+    """
     from rough_map.io.pointcloud import atomic_output
 
     path = Path(path)
@@ -330,29 +428,24 @@ def write_features(table: FeatureTable, path: str | Path) -> Path:
     data = dict(table.columns)
     for k, name in enumerate(table.spectrum_names()):
         data[name] = table.log_psd[:, k]
-    if path.suffix == ".parquet":
+    meta_text = json.dumps(features_metadata(table), indent=1, ensure_ascii=False)
+    suffix = path.suffix.lower()
+    if suffix == ".parquet":
         try:
             import pyarrow as pa
             import pyarrow.parquet as pq
         except ImportError:
             raise InputError("writing .parquet needs pyarrow: pip install pyarrow") from None
         arrays = {k: (list(v) if k in _TEXT else v) for k, v in data.items()}
-        meta = {
-            b"omega": ",".join(f"{o:.12g}" for o in table.omega).encode(),
-            b"name": table.name.encode(),
-        }
-        tbl = pa.table(arrays).replace_schema_metadata(meta)
+        tbl = pa.table(arrays).replace_schema_metadata({b"rough_map": meta_text.encode()})
         with atomic_output(path) as tmp:
             pq.write_table(tbl, tmp)
         return path
-    if path.suffix != ".csv":
+    if suffix != ".csv":
         raise InputError(f"features are written as .csv or .parquet, not {path.suffix!r}")
-    with atomic_output(path) as tmp, open(tmp, "w", newline="") as fh:
-        fh.write(
-            f"# rough_map features of {table.name}; omega_rad_per_m="
-            + ",".join(f"{o:.12g}" for o in table.omega)
-            + "\n"
-        )
+    with atomic_output(features_metadata_path(path)) as tmp:
+        tmp.write_text(meta_text + "\n", encoding="utf-8")
+    with atomic_output(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh)
         writer.writerow(names)
         for i in range(len(table)):
@@ -369,34 +462,26 @@ def _fmt(v) -> str:
 
 
 def read_features(path: str | Path) -> FeatureTable:
-    """Read a table written by :func:`write_features` (.csv or .parquet)."""
+    """Read a table written by :func:`write_features` (.csv with its .json, or .parquet).
+
+    Tables written by rough_map 0.1, whose CSV began with a ``# rough_map features`` line
+    holding the wavenumbers, are read too.
+
+    Raises
+    ------
+    FileFormatError
+        No such file; a CSV whose metadata file is missing or damaged; a missing column or a
+        bad value (naming the column).
+    """
     path = Path(path)
     if not path.is_file():
         raise FileFormatError(path, "no such features file")
-    if path.suffix == ".parquet":
-        import pyarrow.parquet as pq
-
-        tbl = pq.read_table(path)
-        meta = tbl.schema.metadata or {}
-        omega = np.array([float(v) for v in meta.get(b"omega", b"").decode().split(",") if v])
-        raw = {k: np.asarray(tbl[k].to_pylist(), dtype=object) for k in tbl.column_names}
-        name = meta.get(b"name", b"").decode()
+    if path.suffix.lower() == ".parquet":
+        raw, meta = _read_parquet(path)
     else:
-        with open(path, newline="") as fh:
-            first = fh.readline()
-            if not first.startswith("# rough_map features") or "omega_rad_per_m=" not in first:
-                raise FileFormatError(path, "not a rough_map features table (header line)")
-            name = first[len("# rough_map features of ") :].split(";")[0]
-            omega = np.array([float(v) for v in first.split("omega_rad_per_m=")[1].split(",")])
-            reader = csv.reader(fh)
-            header = next(reader, None)
-            if header is None:
-                raise FileFormatError(path, "truncated: no column header")
-            body = list(reader)
-        raw = {
-            h: np.array([r[j] if j < len(r) else "" for r in body], dtype=object)
-            for j, h in enumerate(header)
-        }
+        raw, meta = _read_csv(path)
+    omega = np.asarray(meta["omega"], dtype=float)
+    name = meta["name"]
     missing = [c for c in COLUMNS if c not in raw]
     if missing:
         raise FileFormatError(path, f"missing columns {missing}", field=missing[0])
@@ -428,4 +513,100 @@ def read_features(path: str | Path) -> FeatureTable:
         )
     except KeyError as exc:
         raise FileFormatError(path, "missing spectrum column", field=str(exc)) from None
+    except ValueError as exc:
+        raise FileFormatError(path, f"bad value in a spectrum column: {exc}") from None
     return FeatureTable(cols, omega, log_psd, name)
+
+
+def _read_parquet(path: Path) -> tuple[dict[str, np.ndarray], dict]:
+    try:
+        import pyarrow.parquet as pq
+    except ImportError:
+        raise InputError("reading .parquet needs pyarrow: pip install pyarrow") from None
+    tbl = pq.read_table(path)
+    kv = tbl.schema.metadata or {}
+    raw = {k: np.asarray(tbl[k].to_pylist(), dtype=object) for k in tbl.column_names}
+    if b"rough_map" in kv:
+        meta = _parse_metadata(kv[b"rough_map"].decode(), path, "Parquet metadata 'rough_map'")
+    elif b"omega" in kv:  # rough_map 0.1
+        omega = [float(v) for v in kv[b"omega"].decode().split(",") if v]
+        meta = {"omega": omega, "name": kv.get(b"name", b"").decode()}
+    else:
+        raise FileFormatError(path, "no rough_map metadata: not written by rough-map features")
+    return raw, meta
+
+
+def _read_csv(path: Path) -> tuple[dict[str, np.ndarray], dict]:
+    with open(path, newline="", encoding="utf-8") as fh:
+        first = fh.readline()
+        if first.startswith("# rough_map features"):  # rough_map 0.1: metadata in line 1
+            if "omega_rad_per_m=" not in first:
+                raise FileFormatError(path, "not a rough_map features table (header line)")
+            meta = {
+                "name": first[len("# rough_map features of ") :].split(";")[0],
+                "omega": [float(v) for v in first.split("omega_rad_per_m=")[1].split(",")],
+            }
+        else:
+            fh.seek(0)
+            meta = None
+        reader = csv.reader(fh)
+        header = next(reader, None)
+        if header is None:
+            raise FileFormatError(path, "empty: no column header")
+        body = list(reader)
+    if meta is None:
+        meta = _csv_metadata(path, header)
+    raw = {
+        h: np.array([r[j] if j < len(r) else "" for r in body], dtype=object)
+        for j, h in enumerate(header)
+    }
+    return raw, meta
+
+
+def _csv_metadata(path: Path, header: list[str]) -> dict:
+    sidecar = features_metadata_path(path)
+    if not sidecar.is_file():
+        if not any(h.startswith("psd_") for h in header):
+            return {"name": path.stem, "omega": []}  # nothing that needs the metadata
+        raise FileFormatError(
+            path,
+            f"its metadata file {sidecar.name} is missing (it holds the wavenumbers of the "
+            "psd_NN columns); keep the two files together, or write the table again with "
+            "`rough-map features`",
+        )
+    try:
+        text = sidecar.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise FileFormatError(sidecar, f"cannot read the metadata: {exc}") from None
+    meta = _parse_metadata(text, sidecar, "metadata")
+    n_psd = sum(h.startswith("psd_") for h in header)
+    if len(meta["omega"]) != n_psd:
+        raise FileFormatError(
+            sidecar,
+            f"{len(meta['omega'])} wavenumbers for {n_psd} psd_NN columns in {path.name}",
+            field="omega_rad_per_m",
+        )
+    return meta
+
+
+def _parse_metadata(text: str, where: Path, what: str) -> dict:
+    try:
+        doc = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise FileFormatError(where, f"{what} is not JSON: {exc}") from None
+    if not isinstance(doc, dict) or doc.get("format") != FEATURES_FORMAT:
+        raise FileFormatError(where, f"{what} is not rough_map features metadata", "format")
+    version = doc.get("format_version")
+    if not isinstance(version, int) or version > FEATURES_FORMAT_VERSION:
+        raise FileFormatError(
+            where,
+            f"format_version {version!r}; this rough_map reads up to {FEATURES_FORMAT_VERSION}",
+            "format_version",
+        )
+    omega = doc.get("omega_rad_per_m")
+    if not (
+        isinstance(omega, list)
+        and all(isinstance(o, int | float) and not isinstance(o, bool) for o in omega)
+    ):
+        raise FileFormatError(where, "must be a list of numbers (rad/m)", "omega_rad_per_m")
+    return {"name": str(doc.get("name", "")), "omega": [float(o) for o in omega]}

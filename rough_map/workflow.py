@@ -134,7 +134,7 @@ def analyse(
         crs=traverse.spec.crs,
     )
     grid.attrs["traverse"] = traverse.name
-    add_elevation(grid, traverse)
+    add_elevation(grid, traverse, progress=progress)
     result = TraverseAnalysis(traverse, features, prediction, grid, model)
     has_images = any(f.left is not None for f in traverse.frames)
     run_far = (near_far is True) or (near_far == "auto" and has_images and model is not None)
@@ -150,7 +150,7 @@ def analyse(
 def _levels_config(model: Any) -> Any:
     from rough_map.classify import load_roughness_levels
 
-    return getattr(model, "levels_", None) or load_roughness_levels(_default_levels())
+    return getattr(model, "levels_", None) or load_roughness_levels(None)
 
 
 def level_edges(result: TraverseAnalysis) -> tuple[float, ...]:
@@ -169,23 +169,24 @@ def _levels(features: Any, model: Any) -> np.ndarray:
     return np.array([lookup.get(str(v), math.nan) for v in lv])
 
 
-def _default_levels() -> Path | None:
-    path = Path(__file__).resolve().parent.parent / "configs" / "roughness_levels.yaml"
-    return path if path.is_file() else None
-
-
-def add_elevation(grid: Any, traverse: Any, *, sample: int = 20_000) -> None:
+def add_elevation(
+    grid: Any, traverse: Any, *, sample: int = 20_000, progress: bool = False
+) -> None:
     """Elevation layer (m, world z): mean height of the frames' points per map cell.
 
     Points outside the map (it covers the patch footprints plus a margin) are left out.
+    Reading the clouds again is one of the long steps of a map: ``progress`` shows a bar
+    on stderr.
     """
+    from tqdm import tqdm
+
     from rough_map.errors import RoughMapError
 
     geo = grid.geometry
     sums = np.zeros(geo.shape)
     counts = np.zeros(geo.shape)
     rng = np.random.default_rng(0)
-    for i in range(len(traverse)):
+    for i in tqdm(range(len(traverse)), desc="elevation", unit="frame", disable=not progress):
         if traverse.frames[i].cloud is None:
             continue
         try:
@@ -290,14 +291,22 @@ def truth_accuracy(result: TraverseAnalysis) -> dict[str, float]:
 
 
 def write_tables(result: TraverseAnalysis, out_dir: str | Path) -> dict[str, Path]:
-    """``features.csv`` and, with a model, ``labels.csv`` (raw and filtered class per frame)."""
+    """``features.csv`` with its metadata ``features.csv.json`` and, with a model,
+    ``labels.csv`` (raw and filtered class per frame).
+
+    Returns
+    -------
+    dict of str to Path
+        ``"features"``, ``"features_metadata"`` and ``"labels"`` (with a model).
+    """
     import csv
 
     from rough_map.io.pointcloud import atomic_output
-    from rough_map.pipeline import write_features
+    from rough_map.pipeline import features_metadata_path, write_features
 
     out = Path(out_dir)
-    paths = {"features": write_features(result.features, out / "features.csv")}
+    features = write_features(result.features, out / "features.csv")
+    paths = {"features": features, "features_metadata": features_metadata_path(features)}
     pred = result.prediction
     if pred is None:
         return paths

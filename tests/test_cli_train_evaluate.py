@@ -155,10 +155,18 @@ def test_evaluate_matches_sklearn_on_classify_output(sim, trained, tmp_path, cap
     code, out, _ = run(capsys, "evaluate", sim["v03_csv"], sim["v05_csv"], sim["v07_csv"],
                        "--model", trained, "--json")  # fmt: skip
     result = json.loads(out)
+    # raw and filtered: one class list (all true or predicted classes, sorted); the
+    # macro-F1 over the classes present in the truth
+    classes = sorted(set(y) | set(r) | set(f))
+    truth_classes = sorted(set(y))
+    assert result["scored_classes"] == truth_classes
     for part, pred in (("raw", r), ("filtered", f)):
         got = result[part]
+        assert got["classes"] == classes and got["scored_classes"] == truth_classes
         assert got["accuracy"] == pytest.approx(accuracy_score(y, pred))
-        assert got["macro_f1"] == pytest.approx(f1_score(y, pred, average="macro"))
+        assert got["macro_f1"] == pytest.approx(
+            f1_score(y, pred, labels=truth_classes, average="macro")
+        )
         assert got["confusion_matrix"] == confusion_matrix(y, pred, labels=got["classes"]).tolist()
         per_class = f1_score(y, pred, labels=got["classes"], average=None)
         assert list(got["f1"].values()) == pytest.approx(list(per_class))
@@ -169,6 +177,52 @@ def test_evaluate_a_traverse_folder(sim, trained, capsys) -> None:
     code, out, err = run(capsys, "evaluate", sim["v07"], "--model", trained)
     assert code == 0, err
     assert "confusion matrix (row-normalised)" in out and "macro-F1" in out
+    # the text says which classes the macro-F1 averages: v07's four surfaces
+    truth = ", ".join(sorted(["dirt_road", "ploughed_soil", "concrete", "compact_soil"]))
+    assert f"over the 4 true classes ({truth})" in out
+
+
+def test_macro_f1_averages_the_true_classes_only() -> None:
+    """A hand-computed case: 'c' is predicted once but never true.
+
+    a: TP 2, FP 1 (a b taken for a), FN 1 (an a taken for c): P = R = F1 = 2/3.
+    b: TP 1, FP 0, FN 1: P = 1, R = 1/2, F1 = 2/3.  c: F1 0, not averaged.
+    Macro-F1 over the true classes a, b: 2/3 (over a, b, c it would be 4/9).
+    """
+    from rough_map.classify import scores
+
+    s = scores(["a", "a", "a", "b", "b"], ["a", "a", "c", "b", "a"])
+    assert s["scored_classes"] == ["a", "b"] and s["classes"] == ["a", "b", "c"]
+    assert s["f1"] == pytest.approx({"a": 2 / 3, "b": 2 / 3, "c": 0.0})
+    assert s["macro_f1"] == pytest.approx(2 / 3)
+    assert s["accuracy"] == pytest.approx(3 / 5)
+    # a given class list orders the matrix (raw and filtered share one); it must hold them all
+    s = scores(["a", "b"], ["b", "b"], classes=["b", "a", "c"])
+    assert s["classes"] == ["b", "a", "c"] and s["confusion_matrix"][1] == [1, 0, 0]
+    from rough_map import errors
+
+    with pytest.raises(errors.InputError, match=r"lack the scored classes \['c'\]"):
+        scores(["a", "b"], ["c", "b"], classes=["a", "b"])
+
+
+def test_raw_and_filtered_confusion_matrices_share_their_classes(sim) -> None:
+    """The shipped model on v05: whatever raw and filtered predict, one class list."""
+    from rough_map.evaluation import evaluate_model
+    from rough_map.io.model import load_terrain_model
+
+    model = load_terrain_model(ROOT / "models" / "default")
+    table = read_features(sim["v05_csv"])
+    result = evaluate_model(model, [table])
+    pred = model.predict(table)
+    ok = pred.valid & (table.columns["label"] != "")
+    expect = sorted(
+        set(table.columns["label"][ok]) | set(pred.raw_class[ok]) | set(pred.filtered_class[ok])
+    )
+    assert result["raw"]["classes"] == result["filtered"]["classes"] == expect
+    assert result["scored_classes"] == sorted(set(table.columns["label"][ok]))
+    n = len(expect)
+    for part in ("raw", "filtered"):
+        assert np.asarray(result[part]["confusion_matrix"]).shape == (n, n)
 
 
 def test_unlabelled_and_invalid_frames_are_counted(sim, trained, tmp_path, capsys) -> None:
@@ -236,3 +290,24 @@ def test_default_model_generalises_to_unseen_traverses(sim) -> None:
     result = evaluate_model(model, tables)
     assert result["raw"]["macro_f1"] >= 0.7
     assert result["filtered"]["macro_f1"] >= result["raw"]["macro_f1"]
+
+
+def test_tables_need_their_metadata_file(sim, trained, tmp_path, capsys) -> None:
+    """A features CSV copied without its .csv.json: one line naming the missing file."""
+    import shutil
+
+    lone = Path(shutil.copy(sim["v05_csv"], tmp_path / "v05.csv"))
+    for argv in (
+        ("train", lone, "--out", tmp_path / "m"),
+        ("classify", lone, "--model", trained, "--out", tmp_path / "l.csv"),
+        ("evaluate", lone, "--model", trained),
+    ):
+        code, out, err = run(capsys, *argv)
+        assert code == 2 and out == ""
+        assert err.count("\n") == 1, err
+        assert f"{lone}: its metadata file v05.csv.json is missing" in err
+    shutil.copy(sim["v05_csv"].with_name("v05.csv.json"), tmp_path / "v05.csv.json")
+    code, out, err = run(capsys, "classify", lone, "--model", trained, "--out",
+                         tmp_path / "l.csv", "-q")  # fmt: skip
+    assert code == 0 and err == ""
+    assert read_labels(tmp_path / "l.csv")["frame"].size == len(read_features(lone))

@@ -16,7 +16,14 @@ from rough_map.export.geotiff import (
     write_values_geotiff,
 )
 from rough_map.export.gridmap_msg import read_gridmap_bag, write_gridmap_bag
-from rough_map.export.png import scale_bar_length, write_pngs
+from rough_map.export.png import (
+    display_units,
+    drawn_texts,
+    layer_figure,
+    layer_views,
+    scale_bar_length,
+    write_pngs,
+)
 from rough_map.map import (
     EmptyMapWarning,
     MapCrs,
@@ -212,6 +219,106 @@ def test_pngs(tmp_path, utm_map):
         assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         img = mpimg.imread(p)
         assert img.ndim == 3 and img.shape[1] > 400
+
+
+LONG_NAMES = (
+    "concrete_with_expansion_joints",
+    "dirt_road_after_rain",
+    "coarse_gravel_pile",
+    "compact_soil_of_the_orchard",
+    "ploughed_soil_deep_furrows",
+    "asphalt_with_potholes",
+)
+
+
+@pytest.fixture
+def strip_map():
+    """A long narrow near-field strip (12 m of patches along x) in a map with 6 m of room
+    around it, six classes with long names, and a far-field cell 3 m to the side."""
+    n = 25
+    x = E0 + np.linspace(0.0, 12.0, n)
+    ft = table(x, N0, 0.0, np.geomspace(1e-5, 1e-3, n))
+    k = len(LONG_NAMES)
+    probs = np.full((n, k), 0.1 / (k - 1))
+    probs[np.arange(n), np.arange(n) % k] = 0.9
+    g = fuse_traverse(ft, probs, LONG_NAMES, np.arange(n) % 3, margin=6.0)
+    g.attrs["track"] = np.column_stack([x, np.full(n, N0)])
+    cells = g.cells_at([E0 + 5.0], [N0 + 3.0])
+    fuse_cell_probabilities(g, cells, np.full(k, 1 / k), 0.3, group="far", t=5.0)
+    return g
+
+
+def _boxes_overlap(a, b) -> bool:
+    return a.x0 < b.x1 and b.x0 < a.x1 and a.y0 < b.y1 and b.y0 < a.y1
+
+
+@pytest.mark.parametrize("layer", ["class", "level", "R", "p_dirt_road_after_rain", "count"])
+def test_png_texts_do_not_overlap_and_fit(strip_map, layer):
+    fig = layer_figure(strip_map, layer)
+    fig.canvas.draw()  # places the axis labels
+    renderer = fig.canvas.get_renderer()
+    texts = drawn_texts(fig)
+    shown = {t.get_text() for t in texts}
+    if layer == "class":  # a legend entry per class, each name whole
+        assert set(LONG_NAMES) <= shown
+    boxes = [(t.get_text(), t.get_window_extent(renderer)) for t in texts]
+    width, height = fig.bbox.width, fig.bbox.height
+    for k, (text, box) in enumerate(boxes):
+        assert box.x0 >= 0 and box.y0 >= 0 and box.x1 <= width and box.y1 <= height, text
+        for other, box2 in boxes[k + 1 :]:
+            assert not _boxes_overlap(box, box2), (text, other)
+
+
+def test_png_keys_sit_off_the_map(strip_map):
+    fig = layer_figure(strip_map, "class")
+    renderer = fig.canvas.get_renderer()
+    fig.canvas.draw()
+    map_box = fig.axes[0].get_window_extent(renderer)
+    keys = [a for a in fig.findobj() if a.get_gid() in ("scale-bar", "path-key")]
+    assert {a.get_gid() for a in keys} == {"scale-bar", "path-key"}
+    keys += fig.legends
+    assert fig.legends, "the classes have a legend"
+    for artist in keys:
+        assert not _boxes_overlap(artist.get_window_extent(renderer), map_box), artist
+
+
+def test_png_probability_scale_is_0_to_1(strip_map):
+    data = strip_map["p_dirt_road_after_rain"]
+    assert 0 < np.nanmin(data) and np.nanmax(data) < 1  # the data's own range is narrower
+    fig = layer_figure(strip_map, "p_dirt_road_after_rain")
+    norm = fig.axes[0].images[0].norm
+    assert (norm.vmin, norm.vmax) == (0.0, 1.0)
+    bar = fig.axes[1]  # the colour bar
+    assert tuple(bar.get_xlim()) == (0.0, 1.0)
+
+
+def test_png_near_field_is_cropped_to_its_data(strip_map):
+    x0, y0, x1, _ = strip_map.geometry.bounds
+    rows, cols = np.nonzero(np.isfinite(strip_map["R"]))
+    res = strip_map.resolution
+    data_x = (x0 + cols.min() * res, x0 + (cols.max() + 1) * res)
+    data_y = (y0 + rows.min() * res, y0 + (rows.max() + 1) * res)
+    views = layer_views(strip_map)
+    assert views["R"] == views["class"] == views["p_asphalt_with_potholes"]  # one extent
+    fig = layer_figure(strip_map, "R")
+    ax = fig.axes[0]
+    (vx0, vx1), (vy0, vy1) = ax.get_xlim(), ax.get_ylim()
+    assert data_x[0] - 0.5 <= vx0 <= data_x[0] and data_x[1] <= vx1 <= data_x[1] + 0.5
+    assert vy0 <= data_y[0] and data_y[1] <= vy1
+    # the map is 6 m wider than the data on each side; the picture shows mostly data
+    assert (vx1 - vx0) < 0.6 * (x1 - x0)
+    known = np.isfinite(strip_map["R"]).sum() * res**2
+    assert known / ((vx1 - vx0) * (vy1 - vy0)) > 0.4
+    # the far field has its own extent, around its one cell 3 m to the side
+    far = views["far_p_asphalt_with_potholes"]
+    assert far[2] <= N0 + 3.0 <= far[3] and far[1] - far[0] <= 2.0 + 1e-6  # 20 cells
+
+
+def test_png_units_are_written_one_way(strip_map):
+    assert display_units("m^3/rad") == "m³/rad" and display_units("1") == ""
+    fig = layer_figure(strip_map, "R")
+    labels = " ".join(t.get_text() for t in drawn_texts(fig))
+    assert "m³/rad" in labels and "m^" not in labels
 
 
 def test_gridmap_bag_round_trip(tmp_path, utm_map):

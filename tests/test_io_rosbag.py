@@ -1,6 +1,8 @@
 """ROS bags: PointCloud2 decoding, inspection and import, over ROS 1, ROS 2 sqlite3 and MCAP.
 
-The bags are written in ``tmp_path`` with the rosbags writers; no binary is committed.
+The bags are written in ``tmp_path`` by rough_map's own bag writers (``write_bag``,
+``pointcloud2_message``..., over the rosbags writers), which also make the README's example
+bag (``write_example_bag``); no binary is committed.
 """
 
 from __future__ import annotations
@@ -8,52 +10,47 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-from rosbags.rosbag1 import Writer as Writer1
-from rosbags.rosbag2 import StoragePlugin
-from rosbags.rosbag2 import Writer as Writer2
-from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 from scipy.spatial.transform import Rotation
 
 from rough_map.cli.main import main
 from rough_map.errors import FileFormatError, InputError
 from rough_map.io.rosbag import (
+    EXAMPLE_LIDAR_MOUNT,
     IMU,
     ODOMETRY,
     POINTCLOUD2,
     TF_MESSAGE,
+    PointCloud2Layout,
     Transform,
     import_bag,
+    imu_message,
     imu_rpy,
     inspect_bag,
+    odometry_message,
     odometry_pose,
     open_bag,
+    pointcloud2_message,
     pointcloud2_to_xyz,
     read_imu,
     read_odometry,
     read_transforms,
+    ros_typestore,
     static_transform,
+    tf_message,
     tf_transforms,
+    write_example_bag,
 )
+from rough_map.io.rosbag import write_bag as rosbag_write
 from rough_map.io.traverse import load_traverse
 
 KINDS = ["ros1", "sqlite3", "mcap"]
 T0 = 1_700_000_000 * 10**9  # ns since the epoch of the first odometry message
-
-
-def typestore(kind: str) -> Typestore:
-    store = get_typestore(Stores.ROS1_NOETIC if kind == "ros1" else Stores.ROS2_HUMBLE)
-    if "tf2_msgs/msg/TFMessage" not in store.types:  # not in the bundled ROS 1 store
-        store.register(
-            get_types_from_msg("geometry_msgs/TransformStamped[] transforms", TF_MESSAGE)
-        )
-    return store
 
 
 @pytest.fixture
@@ -65,7 +62,7 @@ def cli_logging() -> Iterator[None]:
     logger.handlers[:], logger.level, logger.propagate = saved
 
 
-STORES = {kind: typestore(kind) for kind in ("ros1", "ros2")}
+STORES = {"ros1": ros_typestore(ros1=True), "ros2": ros_typestore()}
 
 
 def store_of(kind: str) -> Typestore:
@@ -73,32 +70,9 @@ def store_of(kind: str) -> Typestore:
 
 
 # --------------------------------------------------------------------------------------------
-# Message builders
+# Message builders: rough_map.io.rosbag's writers, with the store of the bag's kind
 
-
-def header(ts: Typestore, ns: int, frame_id: str) -> Any:
-    types = ts.types
-    stamp = types["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9)
-    header_type = types["std_msgs/msg/Header"]
-    if "seq" in header_type.__dataclass_fields__:
-        return header_type(seq=0, stamp=stamp, frame_id=frame_id)
-    return header_type(stamp=stamp, frame_id=frame_id)
-
-
-@dataclass(frozen=True)
-class Layout:
-    """How a test cloud is laid out in PointCloud2 bytes."""
-
-    code: str = "f4"  # numpy type of x, y, z
-    datatype: int = 7  # PointField FLOAT32
-    bigendian: bool = False
-    point_step: int = 12
-    offsets: tuple[int, int, int] = (0, 4, 8)
-    extra: tuple[tuple[str, int, str, int], ...] = ()  # (name, offset, numpy code, datatype)
-    height: int = 1
-    row_pad: int = 0  # bytes after each row
-
-
+Layout = PointCloud2Layout
 LAYOUTS = {
     "xyz_f32_le": Layout(),
     "xyzi_padded_step32": Layout(
@@ -112,124 +86,20 @@ LAYOUTS = {
 
 
 def pointcloud2(ts: Typestore, xyz: np.ndarray, layout: Layout, ns: int, frame_id: str) -> Any:
-    """A PointCloud2 message holding ``xyz`` (NaN rows allowed) with ``layout``."""
-    types = ts.types
-    order = ">" if layout.bigendian else "<"
-    names = ["x", "y", "z"] + [e[0] for e in layout.extra]
-    formats = [order + layout.code] * 3 + [order + e[2] for e in layout.extra]
-    offsets = list(layout.offsets) + [e[1] for e in layout.extra]
-    dtype = np.dtype(
-        {"names": names, "formats": formats, "offsets": offsets, "itemsize": layout.point_step}
-    )
-    n = len(xyz)
-    assert n % layout.height == 0
-    width = n // layout.height
-    points = np.zeros(n, dtype=dtype)
-    for i, c in enumerate("xyz"):
-        points[c] = xyz[:, i]
-    for name, *_ in layout.extra:
-        points[name] = np.arange(n) % 7
-    rows = points.tobytes()
-    row_bytes = width * layout.point_step
-    row_step = row_bytes + layout.row_pad
-    data = b"".join(
-        rows[r * row_bytes : (r + 1) * row_bytes] + b"\xab" * layout.row_pad
-        for r in range(layout.height)
-    )
-    field_type = types["sensor_msgs/msg/PointField"]
-    datatypes = [layout.datatype] * 3 + [e[3] for e in layout.extra]
-    fields = [
-        field_type(name=nm, offset=off, datatype=dt, count=1)
-        for nm, off, dt in zip(names, offsets, datatypes, strict=True)
-    ]
-    return types[POINTCLOUD2](
-        header=header(ts, ns, frame_id),
-        height=layout.height,
-        width=width,
-        fields=fields,
-        is_bigendian=layout.bigendian,
-        point_step=layout.point_step,
-        row_step=row_step,
-        data=np.frombuffer(data, dtype=np.uint8),
-        is_dense=not np.isnan(xyz).any(),
-    )
-
-
-def vector3(ts: Typestore, v: Any) -> Any:
-    return ts.types["geometry_msgs/msg/Vector3"](x=float(v[0]), y=float(v[1]), z=float(v[2]))
-
-
-def quaternion(ts: Typestore, q: Any) -> Any:
-    x, y, z, w = (float(c) for c in q)
-    return ts.types["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w)
+    return pointcloud2_message(ts, xyz, ns, frame_id, layout)
 
 
 def odometry(ts: Typestore, ns: int, xyz: Any, rpy: Any) -> Any:
-    t = ts.types
-    pose = t["geometry_msgs/msg/Pose"](
-        position=t["geometry_msgs/msg/Point"](x=xyz[0], y=xyz[1], z=xyz[2]),
-        orientation=quaternion(ts, Rotation.from_euler("xyz", rpy).as_quat()),
-    )
-    twist = t["geometry_msgs/msg/Twist"](
-        linear=vector3(ts, [0, 0, 0]), angular=vector3(ts, [0, 0, 0])
-    )
-    return t[ODOMETRY](
-        header=header(ts, ns, "odom"),
-        child_frame_id="base_link",
-        pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
-        twist=t["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)),
-    )
+    return odometry_message(ts, ns, xyz, rpy)
 
 
 def imu(ts: Typestore, ns: int, rpy: Any, known: bool = True) -> Any:
-    covariance = np.zeros(9)
-    if not known:
-        covariance[0] = -1.0
-    return ts.types[IMU](
-        header=header(ts, ns, "imu_link"),
-        orientation=quaternion(ts, Rotation.from_euler("xyz", rpy).as_quat()),
-        orientation_covariance=covariance,
-        angular_velocity=vector3(ts, [0, 0, 0]),
-        angular_velocity_covariance=np.zeros(9),
-        linear_acceleration=vector3(ts, [0, 0, 9.81]),
-        linear_acceleration_covariance=np.zeros(9),
-    )
-
-
-def tf_message(ts: Typestore, ns: int, parent: str, child: str, xyz: Any, rpy: Any) -> Any:
-    t = ts.types
-    transform = t["geometry_msgs/msg/TransformStamped"](
-        header=header(ts, ns, parent),
-        child_frame_id=child,
-        transform=t["geometry_msgs/msg/Transform"](
-            translation=vector3(ts, xyz),
-            rotation=quaternion(ts, Rotation.from_euler("xyz", rpy).as_quat()),
-        ),
-    )
-    return t[TF_MESSAGE](transforms=[transform])
+    return imu_message(ts, ns, rpy, known=known)
 
 
 def write_bag(path: Path, kind: str, messages: list[tuple[str, str, int, Any]]) -> Path:
     """Write ``(topic, msgtype, ns, message)`` tuples with the real rosbags writers."""
-    ts = store_of(kind)
-    if kind == "ros1":
-        path = path.with_suffix(".bag")
-        writer: Any = Writer1(path)
-    else:
-        plugin = StoragePlugin.SQLITE3 if kind == "sqlite3" else StoragePlugin.MCAP
-        writer = Writer2(path, version=9, storage_plugin=plugin)
-    with writer:
-        connections: dict[str, Any] = {}
-        for topic, msgtype, ns, msg in messages:
-            if topic not in connections:
-                connections[topic] = writer.add_connection(topic, msgtype, typestore=ts)
-            raw = (
-                ts.serialize_ros1(msg, msgtype)
-                if kind == "ros1"
-                else ts.serialize_cdr(msg, msgtype)
-            )
-            writer.write(connections[topic], ns, raw)
-    return path
+    return rosbag_write(path, messages, "ros1" if kind == "ros1" else kind, store_of(kind))
 
 
 # --------------------------------------------------------------------------------------------
@@ -636,3 +506,91 @@ def test_cli_import(
     assert main([*argv[:3], "/nope", *argv[4:-1], str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "error:" in err and "no topic '/nope'" in err
+
+
+# --------------------------------------------------------------------------------------------
+# The example bag: a simulated traverse recorded as a rover's logger would
+
+
+@pytest.fixture(scope="module")
+def small_traverse(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from rough_map.simulate.course import SensorSpec, simulate
+
+    out = tmp_path_factory.mktemp("sim") / "small"
+    simulate(out, "mixed", length=3.0, seed=1, images=False, sensor=SensorSpec(points_per_cell=2))
+    return out
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3", "ros1"])
+def test_example_bag_round_trip(small_traverse: Path, tmp_path: Path, storage: str) -> None:
+    """write_example_bag -> import_bag gives the traverse back: poses, IMU, clouds."""
+    original = load_traverse(small_traverse)
+    bag = write_example_bag(original, tmp_path / "drive_bag", storage=storage)
+    info = inspect_bag(bag)
+    n = len(original)
+    assert {t.name: (t.msgtype, t.count) for t in info.topics} == {
+        "/imu": (IMU, n),
+        "/odom": (ODOMETRY, n),
+        "/points": (POINTCLOUD2, n),
+        "/tf_static": (TF_MESSAGE, 1),
+    }
+    (tf,) = read_transforms(bag)
+    assert (tf.parent, tf.child, tf.translation) == ("base_link", "lidar", EXAMPLE_LIDAR_MOUNT[0])
+
+    back = import_bag(bag, tmp_path / "run", "/points", "/odom", imu_topic="/imu")
+    assert len(back) == n
+    np.testing.assert_allclose(back.times(), original.times() - original.times()[0], atol=1e-9)
+    np.testing.assert_allclose(back.poses(), original.poses(), atol=1e-9)
+    for a, b in zip(back.frames, original.frames, strict=True):
+        assert a.imu is not None and b.imu is not None
+        np.testing.assert_allclose([a.imu.roll, a.imu.pitch], [b.imu.roll, b.imu.pitch], atol=1e-9)
+    for i in (0, n - 1):
+        # float32 in the lidar frame, 1.2 m away: a few um after the mount is undone
+        np.testing.assert_allclose(back.load_cloud(i), original.load_cloud(i), atol=1e-5)
+
+
+def test_example_bag_refuses_bad_arguments(small_traverse: Path, tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="every must be >= 1, got 0"):
+        write_example_bag(small_traverse, tmp_path / "a", every=0)
+    with pytest.raises(InputError, match="storage must be one of mcap, sqlite3, ros1"):
+        write_example_bag(small_traverse, tmp_path / "a", storage="zip")
+    (tmp_path / "taken").mkdir()
+    with pytest.raises(InputError, match="taken exists; write the bag to a new path"):
+        write_example_bag(small_traverse, tmp_path / "taken", every=100)
+
+
+def test_readme_bag_commands(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The README's ROS bag section as written: simulate --bag, inspect, import."""
+    bag = tmp_path / "drive_bag"
+    sim = ["simulate", "--out", str(tmp_path / "sim"), "--course", "mixed", "--length", "2",
+           "--no-images", "--seed", "1", "--points-per-cell", "4", "--bag", str(bag)]  # fmt: skip
+    assert main(sim) == 0
+    assert capsys.readouterr().out.split() == [str(tmp_path / "sim" / "traverse.json"), str(bag)]
+    sim[2] = str(tmp_path / "sim2")
+    assert main(sim) == 2
+    assert "exists; write the bag to a new path" in capsys.readouterr().err
+
+    assert main(["inspect", str(bag)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert [line.split()[0] for line in out[1:5]] == ["/imu", "/odom", "/points", "/tf_static"]
+    argv = ["import", str(bag), "--points-topic", "/points", "--odom-topic", "/odom",
+            "--imu-topic", "/imu", "--out", str(tmp_path / "run1")]  # fmt: skip
+    assert main(argv) == 0
+    assert capsys.readouterr().out.strip() == str(tmp_path / "run1" / "traverse.json")
+    assert main(["-q", "features", str(tmp_path / "run1"), "--out", str(tmp_path / "f.csv")]) == 0
+    assert capsys.readouterr().err == ""
+
+
+def test_cli_bag_paths_that_do_not_exist(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    for argv in (
+        ["inspect", str(tmp_path / "drive_bga")],
+        ["import", str(tmp_path / "drive_bga"), "--points-topic", "/p", "--odom-topic", "/o",
+         "--out", str(tmp_path / "out")],
+    ):  # fmt: skip
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1, err
+        assert f"error: argument bag: no such file or folder: '{tmp_path / 'drive_bga'}'" in err
+    assert main(["import", str(tmp_path), "--points-topic", "/p", "--odom-topic", "/o",
+                 "--out", str(tmp_path / "out"), "--every", "0"]) == 2  # fmt: skip
+    assert "argument --every: expected a positive whole number, got '0'" in capsys.readouterr().err

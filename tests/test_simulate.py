@@ -9,7 +9,7 @@ import pytest
 from rough_map.cli.main import main
 from rough_map.io.traverse import load_traverse
 from rough_map.pipeline import read_features, traverse_features, write_features
-from rough_map.simulate.course import SensorSpec, load_world, simulate
+from rough_map.simulate.course import SensorSpec, load_world, sense_cloud, simulate
 from rough_map.simulate.world import build_world, course_layout, drive
 
 SPARSE = SensorSpec(points_per_cell=8.0)
@@ -219,3 +219,168 @@ def test_bad_simulator_input(tmp_path, mixed):
         simulate(mixed, "mixed", length=4.0, images=False)
     with pytest.raises(InputError, match="length"):
         course_layout("mixed", 0.5)
+
+
+# -- what simulate writes: cropped clouds, a compact truth, optional .npz clouds -------------
+
+
+def test_clouds_keep_the_square_around_the_patch_and_the_same_points():
+    """The crop comes after every random draw: the points kept are those the whole
+    footprint had, bit for bit, the random stream goes on as before, and the patch sees
+    the same points."""
+    from rough_map.patch import PatchSpec
+    from rough_map.pipeline import frame_features
+
+    segs, defects = course_layout("compact", 4.0)
+    world = build_world(segs, defects, seed=2, width=1.5)
+    pose = drive(world, 0.0, 2.0, seed=1)[2, 1:]
+    rng_full, rng_crop = np.random.default_rng(7), np.random.default_rng(7)
+    full = sense_cloud(world, pose, SensorSpec(cloud_half_extent=None), rng_full)
+    crop = sense_cloud(world, pose, SensorSpec(), rng_crop)
+    assert rng_full.random() == rng_crop.random()
+    keep = (np.abs(full[:, 0] - 1.0) <= 0.5) & (np.abs(full[:, 1]) <= 0.5)
+    np.testing.assert_array_equal(crop, full[keep])
+    assert crop.dtype == np.float32 and len(crop) < 0.86 * len(full)
+    assert np.abs(full[:, 1]).max() > 0.54  # the sensor sees +-0.55 m
+    a, _, _ = frame_features(full, PatchSpec(), roll=pose[3], pitch=pose[4])
+    b, _, _ = frame_features(crop, PatchSpec(), roll=pose[3], pitch=pose[4])
+    assert a["valid"] and a["n_points"] == b["n_points"]
+    assert b["R"] == pytest.approx(a["R"], rel=0.02)
+
+
+def test_compressed_traverse_reads_as_the_float_one(tmp_path):
+    """--compress: .npz clouds of 16-bit columns, 15 um steps; every reader takes them and
+    the features hardly move (a new draw of the sensor moves ln R by about 0.09)."""
+    kw = dict(length=3.0, seed=5, images=False, sensor=SPARSE, world_spacing=0.004)
+    plain = simulate(tmp_path / "plain", "compact", **kw).parent
+    packed = simulate(tmp_path / "packed", "compact", compress=True, **kw).parent
+    a, b = load_traverse(plain), load_traverse(packed)
+    b.validate_files()
+    assert all(f.cloud.endswith(".npz") for f in b.frames)
+    meta = b.spec.metadata
+    assert meta["cloud_storage"]["format"] == "npz"
+    assert meta["cloud_extent"] == a.spec.metadata["cloud_extent"]
+    assert meta["cloud_extent"]["x_m"] == [0.5, 1.5] and meta["cloud_extent"]["y_m"] == [-0.5, 0.5]
+    for i in (0, len(a) - 1):
+        ref = a.load_cloud(i)
+        ref = ref[np.argsort(ref[:, 0], kind="stable")]  # stored sorted along x
+        got = b.load_cloud(i)
+        assert got.shape == ref.shape
+        assert np.abs(got - ref).max(axis=0)[:2] == pytest.approx([0.5 / 65535] * 2, rel=0.01)
+        assert np.abs(got - ref)[:, 2].max() < 1e-6
+        assert b.cloud_path(i).stat().st_size < 0.45 * a.cloud_path(i).stat().st_size
+    fa, fb = traverse_features(a), traverse_features(b)
+    assert fb.valid.all()
+    d = np.abs(np.log(fb["R"]) - np.log(fa["R"]))
+    assert np.median(d) < 0.01 and d.max() < 0.05
+
+
+def test_compressed_cloud_round_trip(tmp_path):
+    from rough_map.errors import InputError
+    from rough_map.io.pointcloud import read_cloud
+    from rough_map.simulate.course import save_cloud_npz
+
+    rng = np.random.default_rng(3)
+    pts = rng.uniform([0.5, -0.5, -0.05], [1.5, 0.5, 0.05], (1000, 3))
+    got = read_cloud(save_cloud_npz(tmp_path / "c.npz", pts))
+    ref = pts[np.argsort(pts[:, 0])]
+    step = np.ptp(pts, axis=0) / 65535
+    assert np.all(np.abs(got - ref) <= step / 2 + 1e-12)
+    with np.load(tmp_path / "c.npz") as d:
+        assert d["x"].dtype == np.uint16 and float(d["x_scale"]) == pytest.approx(step[0])
+    # a column wider than 65535 steps of 20 um is kept as float32
+    pts[:, 0] *= 50
+    got = read_cloud(save_cloud_npz(tmp_path / "wide.npz", pts))
+    np.testing.assert_array_equal(np.sort(got[:, 0]), np.sort(pts[:, 0].astype(np.float32)))
+    with pytest.raises(InputError, match=r"\(N, 3\) array .* got shape \(4, 2\)"):
+        save_cloud_npz(tmp_path / "bad.npz", np.zeros((4, 2)))
+
+
+def test_npz_cloud_reader(tmp_path):
+    from rough_map.errors import FileFormatError
+    from rough_map.io.pointcloud import read_cloud
+
+    pts = np.arange(15.0).reshape(5, 3)
+    np.savez(tmp_path / "points.npz", points=pts)
+    np.testing.assert_array_equal(read_cloud(tmp_path / "points.npz"), pts)
+    np.savez(tmp_path / "cols.npz", x=pts[:, 0], y=pts[:, 1].astype(np.float32), z=pts[:, 2])
+    np.testing.assert_array_equal(read_cloud(tmp_path / "cols.npz"), pts)
+    cases = {
+        r"\[z\]: an \.npz cloud holds 'points' \(N x 3\) or columns x, y, z; this one "
+        r"holds \['x', 'y'\]": dict(x=pts[:, 0], y=pts[:, 1]),
+        r"\[shape\]: columns of different lengths: x 5, y 5, z 4": dict(
+            x=pts[:, 0], y=pts[:, 1], z=pts[:4, 2]
+        ),
+        r"\[x\]: expected a 1-D numeric column; got shape \(5, 1\)": dict(
+            x=pts[:, :1], y=pts[:, 1], z=pts[:, 2]
+        ),
+        r"\[y_scale\]: expected a number in m; got shape \(2,\)": dict(
+            x=pts[:, 0], y=pts[:, 1], z=pts[:, 2], y_scale=np.ones(2)
+        ),
+    }
+    for i, (match, arrays) in enumerate(cases.items()):
+        np.savez(tmp_path / f"bad{i}.npz", **arrays)
+        with pytest.raises(FileFormatError, match=rf"bad{i}\.npz {match}"):
+            read_cloud(tmp_path / f"bad{i}.npz")
+    np.save(tmp_path / "array.npy", pts)
+    (tmp_path / "array.npz").write_bytes((tmp_path / "array.npy").read_bytes())
+    with pytest.raises(FileFormatError, match=r"array\.npz: this is an \.npy array, not an \.npz"):
+        read_cloud(tmp_path / "array.npz")
+    data = (tmp_path / "cols.npz").read_bytes()
+    (tmp_path / "cut.npz").write_bytes(data[: len(data) // 2])
+    with pytest.raises(FileFormatError, match=r"cut\.npz: not a readable \.npz archive \(trunc"):
+        read_cloud(tmp_path / "cut.npz")
+
+
+def test_world_truth_is_compact_and_round_trips(tmp_path):
+    """Heights as int16 steps of relief / 65534 (at most 10 um), the class map deflated;
+    a wider relief stays float32, and files of the older float32 layout still load."""
+    from rough_map.simulate.course import HEIGHT_STEP, save_world
+    from rough_map.types import HeightField
+
+    rng = np.random.default_rng(0)
+    heights = rng.uniform(-0.1, 0.2, (300, 400))
+    classes = (np.arange(400)[None, :] // 100 + np.zeros((300, 1), int)) % 5
+    names = ("a", "b", "c", "d", "e")
+    world = HeightField(heights, 0.002, (-3.0, -0.3), classes, names)
+    save_world(world, tmp_path / "w.npz")
+    back = load_world(tmp_path / "w.npz")
+    step = np.ptp(heights) / 65534
+    assert np.abs(back.heights - heights).max() <= step / 2 + 1e-12
+    np.testing.assert_array_equal(back.classes, classes)
+    assert (back.spacing, back.origin, back.class_names) == (0.002, (-3.0, -0.3), names)
+    with np.load(tmp_path / "w.npz") as d:
+        assert d["heights"].dtype == np.int16
+    size = (tmp_path / "w.npz").stat().st_size
+    assert size < 2 * heights.size + 10_000  # the class map packs to almost nothing
+    wide = HeightField(heights * 10, 0.002, (0.0, 0.0), classes, names)  # 3 m of relief
+    assert np.ptp(wide.heights) / 65534 > HEIGHT_STEP
+    save_world(wide, tmp_path / "wide.npz")
+    np.testing.assert_array_equal(
+        load_world(tmp_path / "wide.npz").heights, wide.heights.astype(np.float32)
+    )
+    np.savez(  # the layout written before heights were quantised
+        tmp_path / "old.npz",
+        heights=heights.astype(np.float32),
+        classes=classes.astype(np.int8),
+        spacing=0.002,
+        origin=np.array([-3.0, -0.3]),
+        class_names=np.asarray(names),
+    )
+    old = load_world(tmp_path / "old.npz")
+    np.testing.assert_array_equal(old.heights, heights.astype(np.float32))
+    np.testing.assert_array_equal(old.classes, classes)
+
+
+def test_cli_simulate_compress_and_cloud_extent(tmp_path, capsys):
+    out = tmp_path / "sim"
+    args = ["-q", "simulate", "--out", str(out), "--course", "compact", "--length", "2.5"]
+    args += ["--no-images", "--points-per-cell", "4", "--compress", "--cloud-extent", "0.55"]
+    assert main(args) == 0
+    trav = load_traverse(capsys.readouterr().out.strip())
+    extent = trav.spec.metadata["cloud_extent"]
+    assert extent["cropped"] is False and extent["x_m"] == [0.45, 1.55]
+    assert trav.frames[0].cloud.endswith(".npz")
+    assert np.abs(trav.load_cloud(0)[:, 1]).max() > 0.54
+    assert main(["simulate", "--out", str(tmp_path / "x"), "--cloud-extent", "0"]) == 2
+    assert "--cloud-extent" in capsys.readouterr().err

@@ -1,17 +1,195 @@
-"""Helpers shared by the command modules: argument groups and output."""
+"""Helpers shared by the command modules: the parser, argument types and groups, output.
+
+Conventions every command keeps (``rough_map.cli.main`` builds the sub-parsers with
+:class:`CommandParser`):
+
+* ``-q``/``-v`` work before and after the command name;
+* a bad argument is one line on stderr, ``rough-map CMD: error: ...``, and exit status 2;
+* every option has help text, which shows its default;
+* numbers are checked by the type functions below (:func:`positive_float` ...), paths that
+  must exist by :func:`existing_path`;
+* data goes to stdout; status lines go to stderr through :func:`status`, which ``-q``
+  silences; progress bars only when stderr is a terminal.
+"""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 
 from rough_map.patch import DEFAULT_AHEAD, DEFAULT_SIZE, DEFAULT_SPACING, PatchSpec
+
+# --------------------------------------------------------------------------- the parser
+
+
+class DefaultsHelpFormatter(argparse.HelpFormatter):
+    """Appends ``(default: X)`` to an option's help unless the help already names X.
+
+    Defaults of None and False (an option not given, a flag not set) are not shown.
+    """
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = action.help or ""
+        default = action.default
+        if (
+            text
+            and action.option_strings
+            and default not in (None, False, argparse.SUPPRESS)
+            and "%(default)" not in text
+            and not mentions_default(text, default)
+        ):
+            text += " (default: %(default)s)"
+        return text
+
+
+def mentions_default(text: str, default: Any) -> bool:
+    """Whether a help text already says its default, e.g. "(default 0.1)"."""
+    text = text.replace("%%", "%")
+    return "default" in text and str(default) in text
+
+
+def _with_defaults(formatter: type[argparse.HelpFormatter]) -> type[argparse.HelpFormatter]:
+    if issubclass(formatter, DefaultsHelpFormatter):
+        return formatter
+    return type(f"Defaults{formatter.__name__}", (DefaultsHelpFormatter, formatter), {})
+
+
+class Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors are one line (no usage block) and whose help shows
+    the defaults."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs["formatter_class"] = _with_defaults(
+            kwargs.get("formatter_class", argparse.HelpFormatter)
+        )
+        super().__init__(*args, **kwargs)
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def add_verbosity_args(parser: argparse.ArgumentParser, *, suppress: bool = False) -> None:
+    """``-v``/``-q``. A command's parser takes them with ``suppress=True``
+    (``default=argparse.SUPPRESS``): an option given before the command name is then not
+    reset by the command parser's default."""
+    parser.add_argument(
+        "-v",
+        "--verbose",
+        action="count",
+        default=argparse.SUPPRESS if suppress else 0,
+        help="more log output on stderr: -v info, -vv debug",
+    )
+    parser.add_argument(
+        "-q",
+        "--quiet",
+        action="store_true",
+        default=argparse.SUPPRESS if suppress else False,
+        help="only errors on stderr: no status lines, warnings or progress bars",
+    )
+
+
+class CommandParser(Parser):
+    """The parser of one command: :class:`Parser` plus ``-v``/``-q``."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        add_verbosity_args(self, suppress=True)
+
+
+def status(args: argparse.Namespace, message: str) -> None:
+    """A status line for the user on stderr ("wrote 48 frames to ..."), unless ``-q``."""
+    if not getattr(args, "quiet", False):
+        print(message, file=sys.stderr, flush=True)
+
+
+# --------------------------------------------------------------------------- argument types
+
+#: How units read in the messages of the type functions.
+_UNIT_NAMES = {
+    "m": "metres",
+    "m/s": "metres per second",
+    "Hz": "hertz",
+    "deg": "degrees",
+    "px": "pixels",
+    "": "",
+}
+
+
+def _number(text: str, kind: type) -> float | int:
+    try:
+        value = kind(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected {'a whole number' if kind is int else 'a number'}, got {text!r}"
+        ) from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def _noun(kind: type, unit: str) -> str:
+    units = _UNIT_NAMES.get(unit, unit)
+    return ("whole number" if kind is int else "number") + (f" of {units}" if units else "")
+
+
+def _checked(kind: type, test: Callable[[Any], bool], expected: str, name: str) -> Callable:
+    def parse(text: str) -> Any:
+        value = _number(text, kind)
+        if not test(value):
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
+        return value
+
+    parse.__name__ = name  # argparse names the type in some messages
+    return parse
+
+
+def positive_float(unit: str = "m") -> Callable[[str], float]:
+    """Argument type: a finite float > 0, e.g. ``type=positive_float("m")``."""
+    return _checked(float, lambda v: v > 0, f"a positive {_noun(float, unit)}", "positive")
+
+
+def non_negative_float(unit: str = "m") -> Callable[[str], float]:
+    """Argument type: a finite float >= 0."""
+    return _checked(float, lambda v: v >= 0, f"a non-negative {_noun(float, unit)}", "non-negative")
+
+
+def finite_float(unit: str = "m") -> Callable[[str], float]:
+    """Argument type: any finite float (an offset, an angle)."""
+    return _checked(float, lambda v: True, f"a finite {_noun(float, unit)}", "finite")
+
+
+def positive_int(unit: str = "") -> Callable[[str], int]:
+    """Argument type: a whole number >= 1."""
+    return _checked(int, lambda v: v >= 1, f"a positive {_noun(int, unit)}", "positive")
+
+
+def non_negative_int(unit: str = "") -> Callable[[str], int]:
+    """Argument type: a whole number >= 0 (a seed)."""
+    return _checked(int, lambda v: v >= 0, f"a non-negative {_noun(int, unit)}", "non-negative")
+
+
+def int_at_least(minimum: int, unit: str = "") -> Callable[[str], int]:
+    """Argument type: a whole number >= ``minimum``."""
+    return _checked(int, lambda v: v >= minimum, f"a {_noun(int, unit)} >= {minimum}", "int")
+
+
+def existing_path(text: str) -> Path:
+    """Argument type: a file or folder that exists ("no such file or folder" otherwise)."""
+    path = Path(text)
+    if not path.exists():
+        raise argparse.ArgumentTypeError(f"no such file or folder: {text!r}")
+    return path
+
+
+# --------------------------------------------------------------------------- argument groups
 
 
 def add_traverses_arg(parser: argparse.ArgumentParser, *, many: bool = False) -> None:
@@ -19,9 +197,11 @@ def add_traverses_arg(parser: argparse.ArgumentParser, *, many: bool = False) ->
     parser.add_argument(
         "traverses" if many else "traverse",
         nargs="+" if many else None,
-        type=Path,
+        type=existing_path,
         metavar="TRAVERSE",
-        help=("labelled " if many else "") + "traverse folder or file, or a features table (.csv)",
+        help=("labelled " if many else "")
+        + "traverse folder or file, or a features table (.csv or .parquet, with its "
+        "metadata beside it) written by `rough-map features`",
     )
 
 
@@ -55,31 +235,31 @@ def add_patch_args(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("patch of interest (vehicle frame, metres)")
     g.add_argument(
         "--spacing",
-        type=float,
+        type=positive_float("m"),
         default=DEFAULT_SPACING,
         metavar="M",
         help=f"grid step B in m (default {DEFAULT_SPACING})",
     )
     g.add_argument(
         "--size",
-        type=float,
+        type=positive_float("m"),
         default=DEFAULT_SIZE,
         metavar="M",
         help=f"side of the square patch in m (default {DEFAULT_SIZE})",
     )
     g.add_argument(
         "--ahead",
-        type=float,
+        type=finite_float("m"),
         default=DEFAULT_AHEAD,
         metavar="M",
         help=f"distance of the patch centre ahead of the vehicle in m (default {DEFAULT_AHEAD})",
     )
     g.add_argument(
         "--lateral",
-        type=float,
+        type=finite_float("m"),
         default=0.0,
         metavar="M",
-        help="offset of the patch centre to the left in m (default 0)",
+        help="offset of the patch centre to the left in m (default 0.0)",
     )
 
 
@@ -100,27 +280,59 @@ def add_psd_args(parser: argparse.ArgumentParser) -> None:
 
 
 def patch_spec(args: argparse.Namespace) -> PatchSpec:
+    """The patch of the ``--ahead/--size/--spacing/--lateral`` options.
+
+    Raises
+    ------
+    InputError
+        The options do not make a patch (fewer than 8 samples per profile).
+    """
     return PatchSpec(ahead=args.ahead, size=args.size, spacing=args.spacing, lateral=args.lateral)
 
 
-def _jsonable(value: Any) -> Any:
+# --------------------------------------------------------------------------- output
+
+
+def jsonable(value: Any) -> Any:
+    """``value`` as plain JSON types: numpy scalars and arrays as numbers and lists, NaN
+    and inf as None, paths as strings, objects with a ``to_dict()`` (such as
+    :class:`rough_map.map.near_far.AccuracyTable`) and dataclasses as dicts.
+
+    Raises
+    ------
+    TypeError
+        Something else that JSON cannot hold.
+    """
     if isinstance(value, dict):
-        return {k: _jsonable(v) for k, v in value.items()}
+        return {str(k): jsonable(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
-        return [_jsonable(v) for v in value]
+        return [jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return jsonable(value.tolist())
     if isinstance(value, np.generic):
         value = value.item()
     if isinstance(value, float) and not math.isfinite(value):
         return None
-    if isinstance(value, np.ndarray):
-        return _jsonable(value.tolist())
-    return value
+    if value is None or isinstance(value, bool | int | float | str):
+        return value
+    if isinstance(value, Path):
+        return str(value)
+    if callable(getattr(value, "to_dict", None)):
+        return jsonable(value.to_dict())
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return jsonable(dataclasses.asdict(value))
+    raise TypeError(f"cannot write a {type(value).__name__} as JSON")
 
 
-def emit_json(obj: Any) -> None:
-    """One JSON document on stdout (NaN and inf become null)."""
-    json.dump(_jsonable(obj), sys.stdout, indent=None, separators=(",", ": "))
-    sys.stdout.write("\n")
+def emit_json(obj: Any, *, indent: int | None = None) -> None:
+    """One JSON document on stdout (NaN and inf become null).
+
+    The whole document is built before anything is written, so an object JSON cannot hold
+    raises without leaving half a document on stdout.
+    """
+    text = json.dumps(jsonable(obj), indent=indent, separators=(",", ": "), allow_nan=False)
+    sys.stdout.write(text + "\n")
+    sys.stdout.flush()
 
 
 def table(rows: list[list[str]], header: list[str] | None = None) -> str:

@@ -4,19 +4,21 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 
 import numpy as np
 
-from rough_map.cli._common import patch_spec, table
+from rough_map.cli._common import emit_json, patch_spec, status, table
 
 
 def run_traverse(args: argparse.Namespace) -> int:
     from rough_map.errors import InputError
-    from rough_map.pipeline import traverse_features, write_features
+    from rough_map.pipeline import features_metadata_path, traverse_features, write_features
 
     if args.out is None:
         raise InputError("a traverse needs --out FILE (.csv, or .parquet with pyarrow)")
+    parquet = args.out.suffix.lower() == ".parquet"
+    if not parquet and args.out.suffix.lower() != ".csv":  # say so before the long run
+        raise InputError(f"--out must be a .csv or .parquet file, not {args.out.name!r}")
     if args.roll is not None or args.pitch is not None:
         raise InputError(
             "--roll/--pitch are for a single cloud; a traverse uses its IMU (or --no-tilt)"
@@ -32,15 +34,12 @@ def run_traverse(args: argparse.Namespace) -> int:
     )
     write_features(feats, args.out)
     valid = feats.valid
-    print(
-        f"wrote {len(feats)} frames ({int((~valid).sum())} invalid) to {args.out}", file=sys.stderr
-    )
+    status(args, f"wrote {len(feats)} frames ({int((~valid).sum())} invalid) to {args.out}")
     if args.json:
-        from rough_map.cli._common import emit_json
-
         emit_json(
             {
                 "file": str(args.out),
+                "metadata": None if parquet else str(features_metadata_path(args.out)),
                 "frames": len(feats),
                 "invalid": int((~valid).sum()),
                 "summary": _summary(feats),
@@ -51,7 +50,7 @@ def run_traverse(args: argparse.Namespace) -> int:
         [k, str(v["frames"]), f"{v['R']:.3e}", f"{v['w']:.2f}", v["iso"]]
         for k, v in _summary(feats).items()
     ]
-    print(table(rows, ["label", "frames", "R m^3/rad (geo. mean)", "w (mean)", "ISO"]))
+    print(table(rows, ["label", "frames", "R m³/rad (geo. mean)", "w (mean)", "ISO"]))
     return 0
 
 

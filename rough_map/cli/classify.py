@@ -13,11 +13,17 @@ from __future__ import annotations
 import argparse
 import csv
 import math
-import sys
 from collections import Counter
 from pathlib import Path
 
-from rough_map.cli._common import add_mode_arg, add_model_arg, add_traverses_arg, emit_json, table
+from rough_map.cli._common import (
+    add_mode_arg,
+    add_model_arg,
+    add_traverses_arg,
+    emit_json,
+    status,
+    table,
+)
 
 COLUMNS = (
     "frame",
@@ -52,7 +58,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     add_traverses_arg(p)
     add_model_arg(p)
-    p.add_argument("--out", type=Path, required=True, metavar="labels.csv")
+    p.add_argument(
+        "--out", type=Path, required=True, metavar="labels.csv", help="the per-frame CSV to write"
+    )
     add_mode_arg(p)
     p.add_argument("--json", action="store_true", help="print a JSON summary")
     p.set_defaults(func=run)
@@ -108,10 +116,7 @@ def run(args: argparse.Namespace) -> int:
                 ]
             )
     n_invalid = int((~pred.valid).sum())
-    print(
-        f"wrote {len(tab)} frames ({n_invalid} without a valid patch) to {args.out}",
-        file=sys.stderr,
-    )
+    status(args, f"wrote {len(tab)} frames ({n_invalid} without a valid patch) to {args.out}")
     counts = Counter(str(c) for c in pred.filtered_class)
     levels = Counter(str(c) for c in pred.level if c)
     if args.json:

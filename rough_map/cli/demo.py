@@ -13,13 +13,18 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from rough_map.cli._common import table
+from rough_map.cli._common import (
+    non_negative_int,
+    positive_float,
+    positive_int,
+    status,
+    table,
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -36,17 +41,17 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="DIR",
         help="output folder (default ./rough_map_demo; replaced if it holds a previous demo)",
     )
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=non_negative_int(), default=0, help="random seed (default 0)")
     p.add_argument(
         "--length",
-        type=float,
+        type=positive_float("m"),
         default=24.0,
         metavar="M",
         help="length of the simulated mixed course in m (default 24: 8 m of each surface)",
     )
     p.add_argument(
         "--image-every",
-        type=int,
+        type=positive_int(),
         default=8,
         metavar="N",
         help="render the stereo pair of every N-th frame (default 8: every 2 m at 0.5 m/s)",
@@ -68,8 +73,31 @@ def _say(msg: str) -> None:
     print(msg, flush=True)
 
 
+SYNTHETIC_HEAD = ["surface", "true R [m³/rad]", "true w", "R [m³/rad]", "w", "rms [mm]", "ISO"]
+SYNTHETIC_CAPTION = (
+    "The PSD estimator on seeded synthetic terrain: for every ISO 8608 class (w = -2) and "
+    "every named surface, 10 patches of 0.896 m gridded at 8 mm. True R (m³/rad) and w next "
+    "to the estimates (geometric mean of R, mean of w and of the rms height over the patches) "
+    "and the ISO class of the estimated R."
+)
+STEREO_HEAD = [
+    "frame", "label", "stereo points", "R range [m³/rad]", "R stereo [m³/rad]", "w range",
+    "w stereo",
+]  # fmt: skip
+STEREO_CAPTION = (
+    "Stereo against range: for each frame with a stereo pair, the features (R, w) of the "
+    "patch from the stereo point cloud (SGBM on the XB3-like rig's images) next to those "
+    "from the range sensor's cloud. Empty cells: no valid patch."
+)
+
+
 def synthetic_table(seed: int, patches: int = 10) -> str:
-    """Part 1: R and w of synthetic patches next to the truth."""
+    """Part 1: R and w of synthetic patches next to the truth, as text."""
+    return table(synthetic_rows(seed, patches), SYNTHETIC_HEAD)
+
+
+def synthetic_rows(seed: int, patches: int = 10) -> list[list[str]]:
+    """Part 1: R and w of synthetic patches next to the truth (rows of SYNTHETIC_HEAD)."""
     from rough_map import iso8608, terrain
     from rough_map.patch import DEFAULT_SPACING as B
     from rough_map.psd import patch_roughness
@@ -114,7 +142,7 @@ def synthetic_table(seed: int, patches: int = 10) -> str:
                 str(iso8608.iso_class(R)),
             ]
         )
-    return table(rows, ["surface", "true R", "true w", "R m^3/rad", "w", "rms mm", "ISO"])
+    return rows
 
 
 def run(args: argparse.Namespace) -> int:
@@ -123,19 +151,20 @@ def run(args: argparse.Namespace) -> int:
         "== 1. The PSD estimator on synthetic terrain "
         "(10 patches of 0.896 m at 8 mm per surface) =="
     )
-    _say(synthetic_table(args.seed))
+    synthetic = synthetic_rows(args.seed)
+    _say(table(synthetic, SYNTHETIC_HEAD))
     if args.quick:
         return 0
-    return _whole_story(args, t0)
+    return _whole_story(args, t0, synthetic)
 
 
-def _whole_story(args: argparse.Namespace, t0: float) -> int:
+def _whole_story(args: argparse.Namespace, t0: float, synthetic: list[list[str]]) -> int:
     import shutil
 
     from rough_map.cli.map import default_model
     from rough_map.evaluation import evaluate_model
     from rough_map.export import export_map
-    from rough_map.export.report import write_report
+    from rough_map.export.report import ReportTable, write_report
     from rough_map.io.traverse import load_traverse
     from rough_map.simulate.course import simulate
     from rough_map.workflow import analyse, level_edges, truth_accuracy, write_tables
@@ -171,7 +200,8 @@ def _whole_story(args: argparse.Namespace, t0: float) -> int:
         "\n== 3. Stereo (SGBM on the patch rows) -> point cloud -> R, w; against the range "
         "sensor =="
     )
-    _say(_stereo_check(trav))
+    stereo_rows, stereo_note = _stereo_rows(trav)
+    _say(table(stereo_rows, STEREO_HEAD) + f"\n{stereo_note}")
 
     _say("\n== 4. Features, terrain model and Bayesian path filter; 5. map, near-to-far ==")
     model = args.model or default_model()
@@ -196,10 +226,13 @@ def _whole_story(args: argparse.Namespace, t0: float) -> int:
                     f"{np.mean(pred.filtered_class[sel] == lab):.2f}",
                 ]
             )
-    _say(table(rows, ["true class", "frames", "R m^3/rad", "ISO", "w", "raw acc", "filtered acc"]))
+    class_head = ["true class", "frames", "R [m³/rad]", "ISO", "w", "raw acc", "filtered acc"]
+    class_rows = rows
+    _say(table(rows, class_head))
     evaluation = evaluate_model(result.model, [f])
     _say(
-        f"macro-F1 raw {evaluation['raw']['macro_f1']:.3f}, filtered "
+        f"macro-F1 (over the true classes {', '.join(evaluation['scored_classes'])}) raw "
+        f"{evaluation['raw']['macro_f1']:.3f}, filtered "
         f"{evaluation['filtered']['macro_f1']:.3f}; accuracy raw "
         f"{evaluation['raw']['accuracy']:.3f}, filtered {evaluation['filtered']['accuracy']:.3f}"
     )
@@ -220,23 +253,48 @@ def _whole_story(args: argparse.Namespace, t0: float) -> int:
         far = truth.get("far_class_accuracy")
         acc = "" if far is None else f", far-field class accuracy {far:.3f}"
         _say(
-            f"near-to-far: {r['near_area_m2']:.1f} m^2 seen by geometry, "
-            f"{r['near_far_area_m2']:.1f} m^2 with appearance (x{r['area_ratio']:.1f}){acc}"
+            f"near-to-far: {r['near_area_m2']:.1f} m² seen by geometry, "
+            f"{r['near_far_area_m2']:.1f} m² with appearance (x{r['area_ratio']:.1f}){acc}"
         )
 
     _say("\n== 6. Outputs ==")
     paths = export_map(result.map, out, name="map", png=True)
     paths.update(write_tables(result, out))
-    paths.update(write_report(result, out, evaluation=evaluation, level_edges=level_edges(result)))
+    tables = [
+        ReportTable("The PSD estimator on synthetic patches", SYNTHETIC_HEAD, synthetic,
+                    SYNTHETIC_CAPTION),
+        ReportTable("Stereo against the range sensor", STEREO_HEAD, stereo_rows, STEREO_CAPTION,
+                    [stereo_note]),
+        ReportTable(
+            "Features and classes by true class",
+            class_head,
+            class_rows,
+            "Per true class of the simulated traverse: frames with a valid patch, geometric "
+            "mean of R and its ISO 8608 class, mean w, and the share of frames the classifier "
+            "(raw) and the path filter (filtered) label correctly.",
+        ),
+    ]  # fmt: skip
+    paths.update(
+        write_report(
+            result, out, evaluation=evaluation, level_edges=level_edges(result), tables=tables
+        )
+    )
     rows = [[k, str(v)] for k, v in paths.items()]
     _say(table(rows, ["output", "path"]))
     _say(f"\nOpen {paths['index']} in a browser. Done in {time.perf_counter() - t0:.0f} s.")
-    print(f"demo outputs in {out}", file=sys.stderr)
+    status(args, f"demo outputs in {out}")
     return 0
 
 
 def _stereo_check(trav) -> str:
-    """Features of the stereo clouds against those of the range clouds, per frame pair."""
+    """Features of the stereo clouds against those of the range clouds, as text."""
+    rows, note = _stereo_rows(trav)
+    return table(rows, STEREO_HEAD) + f"\n{note}"
+
+
+def _stereo_rows(trav) -> tuple[list[list[str]], str]:
+    """Features of the stereo clouds against those of the range clouds, per frame pair
+    (rows of STEREO_HEAD), and the median stereo time."""
     from rough_map.io.stereo import StereoCalibration, read_image, stereo_to_cloud
     from rough_map.patch import PatchSpec
     from rough_map.pipeline import frame_features
@@ -279,6 +337,5 @@ def _stereo_check(trav) -> str:
                     "",
                 ][:7]
             )
-    head = ["frame", "label", "stereo points", "R range", "R stereo", "w range", "w stereo"]
     ms = 1e3 * float(np.median(times)) if times else math.nan
-    return table(rows, head) + f"\nstereo: {ms:.0f} ms per pair (median)"
+    return rows, f"stereo: {ms:.0f} ms per pair (median)"

@@ -11,15 +11,20 @@ the labels of those frames. Frames without a label are skipped; frames without a
 patch have no raw class (the filter still predicts them from its neighbours) and are
 skipped too. Both counts are reported. Labels the model does not know are an error.
 
+Raw and filtered share one list of classes (every class true or predicted on a scored
+frame, sorted). The macro-F1 is the mean F1 over the classes present in the labels
+(``scored_classes``); a class that is predicted but never true is listed with its precision
+but not averaged.
+
 ``--json`` prints one object with ``raw`` and ``filtered``, each holding ``classes``,
 ``confusion_matrix``, ``confusion_matrix_normalized``, ``precision``, ``recall``, ``f1``,
-``support``, ``accuracy`` and ``macro_f1``, plus the frame counts and per-traverse results.
+``support``, ``accuracy``, ``macro_f1`` and ``scored_classes``, plus ``scored_classes``,
+the frame counts and per-traverse results.
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +33,7 @@ from rough_map.cli._common import (
     add_model_arg,
     add_traverses_arg,
     emit_json,
+    status,
     table,
 )
 
@@ -65,6 +71,7 @@ def _report(part: dict[str, Any], title: str) -> str:
     fracs = table(
         [[n, *(f"{v:.2f}" for v in row)] for n, row in zip(names, norm, strict=True)], head
     )
+    scored = part.get("scored_classes", names)
     per = table(
         [
             [
@@ -73,13 +80,15 @@ def _report(part: dict[str, Any], title: str) -> str:
                 f"{part['recall'][n]:.3f}",
                 f"{part['f1'][n]:.3f}",
                 str(part["support"][n]),
+                "yes" if n in scored else "no (never true)",
             ]
             for n in names
         ],
-        ["class", "precision", "recall", "F1", "support"],
+        ["class", "precision", "recall", "F1", "support", "in macro-F1"],
     )
     return (
-        f"== {title}: macro-F1 {part['macro_f1']:.3f}, accuracy {part['accuracy']:.3f} "
+        f"== {title}: macro-F1 {part['macro_f1']:.3f} over the {len(scored)} true classes "
+        f"({', '.join(scored)}), accuracy {part['accuracy']:.3f} "
         f"({part['frames']} frames)\n\nconfusion matrix (counts)\n{counts}\n\n"
         f"confusion matrix (row-normalised)\n{fracs}\n\n{per}\n"
     )
@@ -95,16 +104,16 @@ def run(args: argparse.Namespace) -> int:
     result = evaluate_model(model, tables, args.mode)
     result["model"] = str(args.model)
     fr = result["frames"]
-    print(
+    status(
+        args,
         f"scored {fr['scored']} of {fr['total']} frames; skipped {fr['unlabelled']} without "
         f"a label and {fr['invalid']} without a valid patch",
-        file=sys.stderr,
     )
     if args.plot is not None:
         from rough_map.export.figures import confusion_matrices
 
         confusion_matrices(result, args.plot)
-        print(f"wrote {args.plot}", file=sys.stderr)
+        status(args, f"wrote {args.plot}")
     if args.json:
         emit_json(result)
         return 0

@@ -7,7 +7,15 @@ import math
 import time
 from pathlib import Path
 
-from rough_map.cli._common import add_patch_args, add_psd_args, emit_json, patch_spec, table
+from rough_map.cli._common import (
+    add_patch_args,
+    add_psd_args,
+    emit_json,
+    existing_path,
+    finite_float,
+    patch_spec,
+    table,
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -21,17 +29,22 @@ def register(sub: argparse._SubParsersAction) -> None:
             "A traverse folder instead writes one row per frame to --out."
         ),
     )
-    p.add_argument("source", metavar="CLOUD|TRAVERSE_DIR", type=Path)
+    p.add_argument(
+        "source",
+        metavar="CLOUD|TRAVERSE_DIR",
+        type=existing_path,
+        help="a point cloud file, or a traverse folder (or its traverse.json)",
+    )
     add_patch_args(p)
     p.add_argument(
         "--roll",
-        type=float,
+        type=finite_float("deg"),
         metavar="DEG",
         help="vehicle roll in degrees: compensate tilt (paper Eq. 11)",
     )
     p.add_argument(
         "--pitch",
-        type=float,
+        type=finite_float("deg"),
         metavar="DEG",
         help="vehicle pitch in degrees: compensate tilt (paper Eq. 11)",
     )
@@ -41,7 +54,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--out",
         type=Path,
         metavar="FILE",
-        help="for a traverse: features table (.csv, or .parquet with pyarrow)",
+        help="for a traverse: features table (.csv, or .parquet with pyarrow); its "
+        "metadata (name, wavenumbers of the psd_NN columns) goes to FILE.json beside it",
     )
     p.add_argument(
         "--no-tilt",
@@ -53,13 +67,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         choices=("auto", "cloud", "stereo"),
         default="auto",
         help="for a traverse: the frames' clouds, or their stereo pairs "
-        "(auto: the cloud when there is one)",
+        "(auto: the cloud when there is one); a frame without one is marked invalid",
     )
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.source.is_dir():
+    from rough_map.io.traverse import TRAVERSE_FILES
+
+    if args.source.is_dir() or args.source.name in TRAVERSE_FILES:
         from rough_map.cli._traverse_features import run_traverse
 
         return run_traverse(args)
@@ -123,14 +139,14 @@ def run_cloud(args: argparse.Namespace) -> int:
             f"{grid.points_per_cell:.1f} points per cell ({grid.gridding})",
         ],
         ["band", f"{rough.omega[0]:.2f} to {rough.omega[-1]:.1f} rad/m"],
-        ["R", f"{rough.R:.3e} m^3/rad  (sigma {rough.sigma_R:.2e})  ISO {rough.iso_class}"],
+        ["R", f"{rough.R:.3e} m³/rad  (sigma {rough.sigma_R:.2e})  ISO {rough.iso_class}"],
         ["w", f"{rough.w:.3f}  (sigma {rough.sigma_w:.3f})"],
         ["rms", f"{rough.rms * 1e3:.2f} mm"],
         ["profiles", f"{rough.n_profiles} used, {rough.n_dropped} dropped"],
         [
             "noise",
             f"{grid.point_noise * 1e3:.2f} mm per point -> floor "
-            f"{grid.noise_psd:.2e} m^3/rad" + (" (subtracted)" if rough.noise_subtracted else ""),
+            f"{grid.noise_psd:.2e} m³/rad" + (" (subtracted)" if rough.noise_subtracted else ""),
         ],
         ["method", rough.method],
         [

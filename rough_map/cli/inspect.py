@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
 from dataclasses import asdict
 
-from rough_map.io.rosbag import inspect_bag
+from rough_map.cli._common import emit_json, existing_path
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -16,12 +15,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="List the topics of a ROS 1 bag or ROS 2 bag (folder, .db3 or .mcap) "
         "with their message types and counts.",
     )
-    parser.add_argument("bag", help="ROS 1 .bag file, ROS 2 bag folder, or .db3/.mcap file")
+    parser.add_argument(
+        "bag", type=existing_path, help="ROS 1 .bag file, ROS 2 bag folder, or .db3/.mcap file"
+    )
     parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from rough_map.io.rosbag import inspect_bag
+
     info = inspect_bag(args.bag)
     if args.json:
         data = {
@@ -32,7 +35,7 @@ def run(args: argparse.Namespace) -> int:
             "message_count": info.message_count,
             "topics": [asdict(t) for t in info.topics],
         }
-        print(json.dumps(data, indent=2))
+        emit_json(data, indent=2)
         return 0
     rows = [("topic", "type", "count")] + [(t.name, t.msgtype, str(t.count)) for t in info.topics]
     widths = [max(len(r[i]) for r in rows) for i in range(2)]

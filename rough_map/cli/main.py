@@ -11,6 +11,7 @@ import sys
 import warnings
 
 from rough_map import __version__
+from rough_map.cli._common import CommandParser, Parser, add_verbosity_args
 from rough_map.errors import RoughMapError
 
 # Every module of this package that defines ``register`` is a command.
@@ -28,14 +29,16 @@ log = logging.getLogger("rough_map")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    """The ``rough-map`` parser: one sub-parser (a :class:`CommandParser`) per command."""
+    parser = Parser(
         prog="rough-map",
         description="Terrain roughness, terrain class and semantic maps from point clouds.",
     )
     parser.add_argument("--version", action="version", version=f"rough-map {__version__}")
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
-    parser.add_argument("-q", "--quiet", action="store_true", help="only errors on stderr")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    add_verbosity_args(parser)
+    # Every command's parser also takes -v/-q (with SUPPRESS defaults), so that both
+    # `rough-map -q map ...` and `rough-map map ... -q` work.
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=CommandParser)
     for name in _command_modules():
         module = importlib.import_module(name)
         if hasattr(module, "register"):
@@ -58,8 +61,16 @@ def _configure_logging(verbose: int, quiet: bool) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run ``rough-map`` with ``argv`` (default: ``sys.argv[1:]``); returns the exit status.
+
+    A bad argument returns 2 after one line on stderr, as an error of a command does;
+    ``--help`` and ``--version`` return 0.
+    """
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # argparse's exit after --help, --version or a bad argument
+        return exc.code if isinstance(exc.code, int) else 2
     if args.command is None:
         parser.print_help(sys.stderr)
         return 2

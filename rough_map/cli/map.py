@@ -3,10 +3,16 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
-from rough_map.cli._common import add_model_arg, add_traverses_arg, emit_json, table
+from rough_map.cli._common import (
+    add_model_arg,
+    add_traverses_arg,
+    emit_json,
+    positive_float,
+    status,
+    table,
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -19,15 +25,18 @@ def register(sub: argparse._SubParsersAction) -> None:
             "class probabilities, count, last seen, elevation) and, when the frames have "
             "stereo images, extend it beyond the patch with near-to-far learning. Writes "
             "DIR/map.tif (float bands), DIR/map_class.tif (class with colour table), one PNG "
-            "per layer, DIR/labels.csv and DIR/features.csv."
+            "per layer, DIR/labels.csv and DIR/features.csv (with its metadata in "
+            "DIR/features.csv.json)."
         ),
     )
     add_traverses_arg(p)
     add_model_arg(p, required=False)
-    p.add_argument("--out", type=Path, required=True, metavar="DIR")
+    p.add_argument(
+        "--out", type=Path, required=True, metavar="DIR", help="output folder (created if needed)"
+    )
     p.add_argument(
         "--resolution",
-        type=float,
+        type=positive_float("m"),
         default=0.1,
         metavar="M",
         help="map cell size in m (default 0.1)",
@@ -49,9 +58,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def default_model() -> Path:
-    """The model shipped in ``models/default`` (next to the package, or in the checkout)."""
-    here = Path(__file__).resolve().parents[2] / "models" / "default"
-    return here
+    """The model shipped with rough_map (``models/default``), found as package data."""
+    from rough_map.resources import model_base
+
+    return model_base()
 
 
 def run(args: argparse.Namespace) -> int:
@@ -59,7 +69,6 @@ def run(args: argparse.Namespace) -> int:
     from rough_map.workflow import analyse, truth_accuracy, write_tables
 
     out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
     near_far = {"auto": "auto", "on": True, "off": False}[args.near_far]
     result = analyse(
         args.traverse,
@@ -68,13 +77,12 @@ def run(args: argparse.Namespace) -> int:
         near_far=near_far,
         progress=args.progress,
     )
-    paths = {
-        k: str(v)
-        for k, v in export_map(
-            result.map, out, name="map", png=not args.no_png, gridmap_bag=args.gridmap_bag
-        ).items()
-    }
-    paths.update({k: str(v) for k, v in write_tables(result, out).items()})
+    out.mkdir(parents=True, exist_ok=True)
+    written = export_map(result.map, out, name="map", png=False, gridmap_bag=args.gridmap_bag)
+    if not args.no_png:
+        written.update(_write_pngs(result.map, out, progress=args.progress))
+    written.update(write_tables(result, out))
+    paths = {k: str(v) for k, v in written.items()}
     summary = {
         "traverse": result.traverse.name,
         "frames": len(result.features),
@@ -92,17 +100,32 @@ def run(args: argparse.Namespace) -> int:
     print(table(rows, ["output", "path"]))
     if result.far_report:
         r = result.far_report
-        print(
-            f"near field {r['near_area_m2']:.1f} m^2, with near-to-far "
-            f"{r['near_far_area_m2']:.1f} m^2 (x{r['area_ratio']:.1f})",
-            file=sys.stderr,
+        status(
+            args,
+            f"near field {r['near_area_m2']:.1f} m², with near-to-far "
+            f"{r['near_far_area_m2']:.1f} m² (×{r['area_ratio']:.1f})",
         )
     if "near_class_accuracy" in summary:
         far = summary.get("far_class_accuracy")
-        print(
+        status(
+            args,
             f"against the simulator's truth: near-field class accuracy "
             f"{summary['near_class_accuracy']:.3f}"
             + ("" if far is None else f", far-field {far:.3f}"),
-            file=sys.stderr,
         )
     return 0
+
+
+def _write_pngs(grid, out: Path, *, progress: bool) -> dict[str, Path]:
+    """One PNG per layer (as :func:`rough_map.export.export_map` draws them), with a
+    progress bar: drawing them is the longest step after the features."""
+    from tqdm import tqdm
+
+    from rough_map.export.png import write_pngs
+
+    layers = [n for n in grid.layers if grid.info(n).kind != "internal"]
+    written: dict[str, Path] = {}
+    for layer in tqdm(layers, desc="PNG", unit="layer", disable=not progress):
+        for name, path in write_pngs(grid, out, "map", layers=[layer]).items():
+            written[f"png_{name}"] = path
+    return written

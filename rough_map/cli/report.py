@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
-from rough_map.cli._common import add_model_arg, add_traverses_arg
+from rough_map.cli._common import add_model_arg, add_traverses_arg, positive_float, status
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -20,20 +19,29 @@ def register(sub: argparse._SubParsersAction) -> None:
             "its fit (Fig. 4), the per-profile (R, w) scatter (Fig. 5), the fitted PSD lines "
             "against the ISO classes (Fig. 10), (R, w) by class with the roughness levels "
             "(Fig. 19), the elevation, roughness and class layers with the path (Figs. 20/21) "
-            "and, when the frames are labelled, the confusion matrices."
+            "and, when the frames are labelled, the confusion matrices; each figure with a "
+            "caption, the numbers as tables, and links to the map's GeoTIFFs and one PNG per "
+            "layer (written to DIR too)."
         ),
     )
     add_traverses_arg(p)
-    p.add_argument("--out", type=Path, required=True, metavar="DIR")
+    p.add_argument(
+        "--out", type=Path, required=True, metavar="DIR", help="folder for index.html and figures"
+    )
     add_model_arg(p, required=False)
     p.add_argument(
         "--resolution",
-        type=float,
+        type=positive_float("m"),
         default=0.1,
         metavar="M",
         help="map cell size in m (default 0.1)",
     )
-    p.add_argument("--near-far", choices=("auto", "on", "off"), default="auto")
+    p.add_argument(
+        "--near-far",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="near-to-far from the stereo images (auto: when there are images)",
+    )
     p.set_defaults(func=run)
 
 
@@ -58,9 +66,9 @@ def run(args: argparse.Namespace) -> int:
         evaluation = evaluate_model(result.model, [result.features])
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
-    export_map(result.map, out, name="map", png=False)
+    export_map(result.map, out, name="map", png=True)  # the page links the layer PNGs
     write_tables(result, out)
     paths = write_report(result, out, evaluation=evaluation, level_edges=level_edges(result))
     print(paths["index"])
-    print(f"report of {result.traverse.name} in {out}", file=sys.stderr)
+    status(args, f"report of {result.traverse.name} in {out}")
     return 0

@@ -20,7 +20,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "from the pydantic models of rough_map.config. Prints the files written.",
     )
     parser.add_argument(
-        "--out", default="data_schema", metavar="DIR", help="folder (default: data_schema)"
+        "--out", default="data_schema", metavar="DIR", help="folder (default data_schema)"
     )
     parser.add_argument(
         "--check",

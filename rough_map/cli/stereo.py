@@ -6,6 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
+from rough_map.cli._common import existing_path, finite_float, positive_float
 from rough_map.patch import DEFAULT_AHEAD, DEFAULT_SIZE
 
 
@@ -20,18 +21,22 @@ def register(sub: argparse._SubParsersAction) -> None:
             "of interest are matched and only the points over the patch are written."
         ),
     )
-    p.add_argument("left", type=Path, help="left (reference) image, any format OpenCV reads")
-    p.add_argument("right", type=Path, help="right image, same size")
+    p.add_argument(
+        "left", type=existing_path, help="left (reference) image, any format OpenCV reads"
+    )
+    p.add_argument("right", type=existing_path, help="right image, same size")
     p.add_argument(
         "--calib",
-        type=Path,
+        type=existing_path,
         required=True,
         metavar="FILE",
-        help="rig calibration, YAML or JSON (fx fy cx cy width height baseline camera_to_vehicle)",
+        help="rig calibration, YAML or JSON: fx fy cx cy (px), width height (px), baseline "
+        "(m), camera_to_vehicle (4x4, m); configs/stereo_calibration.yaml is the rig of "
+        "`rough-map simulate`",
     )
     p.add_argument(
         "--config",
-        type=Path,
+        type=existing_path,
         metavar="FILE",
         help="matcher/filter settings like configs/stereo.yaml (default: built-in)",
     )
@@ -50,24 +55,24 @@ def register(sub: argparse._SubParsersAction) -> None:
     g = p.add_argument_group("patch of interest (vehicle frame, metres)")
     g.add_argument(
         "--ahead",
-        type=float,
+        type=finite_float("m"),
         default=DEFAULT_AHEAD,
         metavar="M",
         help=f"distance of the patch centre ahead of the vehicle (default {DEFAULT_AHEAD})",
     )
     g.add_argument(
         "--size",
-        type=float,
+        type=positive_float("m"),
         default=DEFAULT_SIZE,
         metavar="M",
         help=f"side of the square patch (default {DEFAULT_SIZE})",
     )
     g.add_argument(
         "--lateral",
-        type=float,
+        type=finite_float("m"),
         default=0.0,
         metavar="M",
-        help="offset of the patch centre to the left (default 0)",
+        help="offset of the patch centre to the left (default 0.0)",
     )
     p.set_defaults(func=run)
 

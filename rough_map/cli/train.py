@@ -34,7 +34,15 @@ import shlex
 import sys
 from pathlib import Path
 
-from rough_map.cli._common import add_patch_args, add_traverses_arg, emit_json, table
+from rough_map.cli._common import (
+    add_patch_args,
+    add_traverses_arg,
+    emit_json,
+    existing_path,
+    int_at_least,
+    status,
+    table,
+)
 
 #: rough_map.classify.CLASSIFIERS, spelled out so that the parser does not import sklearn.
 CLASSIFIERS = ("logistic", "hgb", "forest")
@@ -75,13 +83,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--levels",
-        type=Path,
+        type=existing_path,
         metavar="FILE",
         help="roughness levels like configs/roughness_levels.yaml (default: built in)",
     )
     p.add_argument(
         "--cv",
-        type=int,
+        type=int_at_least(2),
         default=5,
         metavar="K",
         help="cross-validation folds of whole traverses (default 5)",
@@ -91,7 +99,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--save-features",
         type=Path,
         metavar="DIR",
-        help="also write each traverse's features table to DIR/NAME.csv",
+        help="also write each traverse's features table to DIR/NAME.csv (and its metadata "
+        "to DIR/NAME.csv.json)",
     )
     add_patch_args(p)
     p.add_argument("--json", action="store_true", help="print the model card as JSON")
@@ -135,7 +144,7 @@ def run(args: argparse.Namespace) -> int:
     from rough_map.io.model import read_card
 
     card = read_card(card_file)
-    print(f"wrote {model_file} and {card_file}", file=sys.stderr)
+    status(args, f"wrote {model_file} and {card_file}")
     if args.json:
         emit_json(card)
         return 0

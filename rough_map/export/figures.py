@@ -47,7 +47,8 @@ def _figure(width: float = 8.0, height: float = 5.0):
     return plt, plt.figure(figsize=(width, height), dpi=110)
 
 
-def _save(plt, fig, path: str | Path) -> Path:
+def _save(plt, fig, path: str | Path, *, tight: bool = False) -> Path:
+    """Save and close; ``tight`` crops the PNG to what is drawn (nothing cut off)."""
     from rough_map.io.pointcloud import atomic_output
 
     path = Path(path)
@@ -55,7 +56,10 @@ def _save(plt, fig, path: str | Path) -> Path:
     if fig.get_layout_engine() is None:
         fig.tight_layout()
     with atomic_output(path) as tmp:
-        fig.savefig(tmp, format="png")
+        if tight:
+            fig.savefig(tmp, format="png", bbox_inches="tight", pad_inches=0.15)
+        else:
+            fig.savefig(tmp, format="png")
     plt.close(fig)
     log.debug("wrote %s", path)
     return path
@@ -73,13 +77,16 @@ def roughness_along_path(
     defects: np.ndarray | None = None,
     title: str = "",
 ) -> Path:
-    """R (log scale, m^3/rad) and w along the path (m) with 1-sigma bands (Figs. 7, 9, 12).
+    """R (log scale, m³/rad) and w along the path (m) with 1-sigma bands (Figs. 7, 9, 12).
 
     ISO 8608 class centres A-H are drawn as reference lines on the R panel; the true or
     predicted labels, if given, shade the background; frames flagged in ``defects`` (bool
     per frame, isolated defects such as a manhole) are marked on the R curve.
     """
-    plt, fig = _figure(9, 6)
+    from matplotlib.transforms import blended_transform_factory
+
+    plt, fig = _figure(9, 6.4)
+    fig.set_layout_engine("constrained")
     ax1 = fig.add_subplot(2, 1, 1)
     ax2 = fig.add_subplot(2, 1, 2, sharex=ax1)
     d = np.asarray(distance, float)
@@ -92,12 +99,22 @@ def roughness_along_path(
         np.nanmin(lo[ok]) if ok.any() else 1e-6,
         np.nanmax((R + sigma_R)[ok]) if ok.any() else 1e-2,
     )
+    right_margin = blended_transform_factory(ax1.transAxes, ax1.transData)
     for cls, phi in iso8608.PHI0.items():
         if ymin / 3 < phi < ymax * 3:
             ax1.axhline(phi, color="tab:blue", lw=0.6, ls="--")
+            # class names in the right margin, off the data
             ax1.text(
-                d[0] if d.size else 0, phi, f" ISO {cls}", color="tab:blue", fontsize=8, va="bottom"
+                1.01,
+                phi,
+                f"ISO {cls}",
+                color="tab:blue",
+                fontsize=8,
+                va="center",
+                transform=right_margin,
+                clip_on=False,
             )
+    ax1.set_ylim(ymin / 3, ymax * 3)
     if defects is not None and len(defects) == d.size:
         flagged = np.asarray(defects, dtype=bool) & ok
         if flagged.any():
@@ -127,9 +144,18 @@ def roughness_along_path(
                     step="mid",
                     label=name if ax is ax1 else None,
                 )
-    ax1.legend(loc="upper right", fontsize=8, ncol=3)
+    # the key above the plot, off the data
+    handles = ax1.get_legend_handles_labels()[0]
+    ax1.legend(
+        loc="lower left",
+        bbox_to_anchor=(0.0, 1.01),
+        fontsize=8,
+        ncol=min(6, max(1, len(handles))),
+        frameon=False,
+        borderaxespad=0.0,
+    )
     if title:
-        ax1.set_title(title)
+        fig.suptitle(title)
     return _save(plt, fig, path)
 
 
@@ -143,7 +169,7 @@ def profile_psd_fit(
     omega0: float = 1.0,
     title: str = "",
 ) -> Path:
-    """PSD of one profile (m^3/rad) against Omega (rad/m) with its fit R Omega^w (Fig. 4)."""
+    """PSD of one profile (m³/rad) against Omega (rad/m) with its fit R Omega^w (Fig. 4)."""
     plt, fig = _figure(7, 5)
     ax = fig.add_subplot(1, 1, 1)
     ax.loglog(omega, psd, color="0.55", lw=1.0, label="PSD of the profile")
@@ -192,7 +218,7 @@ def psd_lines_vs_iso(
 ) -> Path:
     """Fitted PSD lines ``R Omega^w`` of surfaces against the ISO 8608 classes (Fig. 10).
 
-    ``surfaces`` maps a name to (R in m^3/rad, w).
+    ``surfaces`` maps a name to (R in m³/rad, w).
     """
     plt, fig = _figure(7, 5)
     ax = fig.add_subplot(1, 1, 1)
@@ -229,9 +255,10 @@ def class_scatter(
 ) -> Path:
     """(R, w) by class with the low/medium/high roughness regions (Fig. 19).
 
-    ``level_edges`` are the two R thresholds (m^3/rad) between low/medium and medium/high.
+    ``level_edges`` are the two R thresholds (m³/rad) between low/medium and medium/high.
     """
-    plt, fig = _figure(7, 5)
+    plt, fig = _figure(8, 5)
+    fig.set_layout_engine("constrained")
     ax = fig.add_subplot(1, 1, 1)
     labels = np.asarray(labels, dtype=object)
     ok = np.isfinite(R) & np.isfinite(w)
@@ -263,7 +290,7 @@ def class_scatter(
     ax.set_yscale("log")
     ax.set_xlabel("w")
     ax.set_ylabel("R  [m³/rad]")
-    ax.legend(fontsize=8, ncol=2)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
     ax.set_title("Roughness parameters by terrain class")
     return _save(plt, fig, path)
 
@@ -276,76 +303,113 @@ def map_layers(
     path_xy: np.ndarray | None = None,
     class_names: Sequence[str] = (),
     titles: dict[str, str] | None = None,
+    labels: dict[str, str] | None = None,
 ) -> Path:
     """Map layers stacked vertically with the rover's path (Figs. 20, 21).
 
     ``layers`` maps a name to a 2-D array whose row 0 is the southern (min y) edge;
     ``extent`` is (x_min, x_max, y_min, y_max) in m. A layer named ``class`` is drawn with
-    the class colours, ``level`` with low/medium/high colours, others with viridis.
+    the class colours and a legend of the class names, ``level`` with low/medium/high
+    colours, others with viridis and a colour bar labelled ``labels[name]``. All layers
+    share one view: the box of the cells where any of them has data. The layout (scale bar
+    and keys under each map, never over it) is :func:`rough_map.export.png.draw_map_panels`.
     """
-    from matplotlib.colors import BoundaryNorm, ListedColormap
+    from rough_map.export.png import MapPanel, data_view, draw_map_panels
 
-    n = len(layers)
-    width = 10.0
-    span_x, span_y = extent[1] - extent[0], extent[3] - extent[2]
-    height = max(2.0, min(4.0, width * span_y / max(span_x, 1e-6))) * n + 0.6
-    plt, fig = _figure(width, height)
     titles = titles or {}
-    for k, (name, arr) in enumerate(layers.items(), start=1):
-        ax = fig.add_subplot(n, 1, k)
-        data = np.ma.masked_invalid(np.asarray(arr, float))
+    labels = labels or {}
+    arrays = {k: np.asarray(v, dtype=float) for k, v in layers.items()}
+    known = np.zeros(next(iter(arrays.values())).shape, dtype=bool) if arrays else None
+    for arr in arrays.values():
+        known |= np.isfinite(arr)
+    view = data_view(known, extent) if known is not None else tuple(extent)
+    panels = []
+    for name, arr in arrays.items():
+        panel = MapPanel(
+            data=arr,
+            extent=tuple(extent),
+            title=titles.get(name, name),
+            label=labels.get(name, name),
+            view=view,
+            track=path_xy,
+        )
         if name == "class" and class_names:
-            cols = [np.array(class_colour(c, i)) / 255 for i, c in enumerate(class_names)]
-            cmap = ListedColormap(cols)
-            norm = BoundaryNorm(np.arange(len(class_names) + 1) - 0.5, len(class_names))
-            im = ax.imshow(
-                data, origin="lower", extent=extent, cmap=cmap, norm=norm, interpolation="nearest"
-            )
-            cb = fig.colorbar(im, ax=ax, ticks=range(len(class_names)), fraction=0.025)
-            cb.ax.set_yticklabels(class_names, fontsize=7)
+            panel.categories = tuple(class_names)
+            panel.colours = [np.array(class_colour(c, i)) / 255 for i, c in enumerate(class_names)]
         elif name == "level":
-            cmap = ListedColormap(_LEVEL_RGB)
-            norm = BoundaryNorm([-0.5, 0.5, 1.5, 2.5], 3)
-            im = ax.imshow(
-                data, origin="lower", extent=extent, cmap=cmap, norm=norm, interpolation="nearest"
-            )
-            cb = fig.colorbar(im, ax=ax, ticks=[0, 1, 2], fraction=0.025)
-            cb.ax.set_yticklabels(["low", "medium", "high"], fontsize=7)
-        else:
-            im = ax.imshow(
-                data, origin="lower", extent=extent, cmap="viridis", interpolation="nearest"
-            )
-            fig.colorbar(im, ax=ax, fraction=0.025)
-        if path_xy is not None and len(path_xy):
-            ax.plot(path_xy[:, 0], path_xy[:, 1], "-", color="tab:blue", lw=1.2)
-        ax.set_title(titles.get(name, name), fontsize=10)
-        ax.set_aspect("equal")
-        ax.set_ylabel("y [m]")
-    ax.set_xlabel("x [m]")
-    return _save(plt, fig, path)
+            panel.categories = ("low", "medium", "high")
+            panel.colours = _LEVEL_RGB
+        panels.append(panel)
+    fig = draw_map_panels(panels, width=9.0, dpi=110)
+    return _save_figure(fig, path)
+
+
+def _save_figure(fig, path: str | Path) -> Path:
+    """Save a Figure made without pyplot (it has its own Agg canvas)."""
+    from rough_map.io.pointcloud import atomic_output
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_output(path) as tmp:
+        fig.savefig(tmp, format="png")
+    log.debug("wrote %s", path)
+    return path
+
+
+def _aligned(part: dict, names: list[str]) -> np.ndarray:
+    """The row-normalised matrix of ``part`` on the class list ``names`` (zeros elsewhere)."""
+    cm = np.asarray(part["confusion_matrix_normalized"], dtype=float)
+    index = {c: i for i, c in enumerate(part["classes"])}
+    out = np.zeros((len(names), len(names)))
+    for i, a in enumerate(names):
+        for j, b in enumerate(names):
+            if a in index and b in index:
+                out[i, j] = cm[index[a], index[b]]
+    return out
 
 
 def confusion_matrices(evaluation: dict, path: str | Path) -> Path:
-    """Row-normalised confusion matrices, raw and filtered side by side.
+    """Row-normalised confusion matrices, raw and filtered side by side, on one class list.
 
     ``evaluation`` has ``raw`` and ``filtered`` parts with ``classes``,
-    ``confusion_matrix_normalized``, ``accuracy`` and ``macro_f1``.
+    ``confusion_matrix_normalized``, ``accuracy`` and ``macro_f1`` (as
+    :func:`rough_map.evaluation.evaluate_model` returns them). Both matrices show the same
+    classes in the same order (the union, if the parts differ); the row of a class that is
+    never true (predicted only, not in the macro-F1) is hatched and marked "not in truth".
     """
-    plt, fig = _figure(11, 4.8)
+    parts = [evaluation["raw"], evaluation["filtered"]]
+    names = list(parts[0]["classes"])
+    names += [c for c in parts[1]["classes"] if c not in names]
+    if names != list(parts[0]["classes"]) or names != list(parts[1]["classes"]):
+        names = sorted(names)
+    scored = set(evaluation.get("scored_classes") or parts[0].get("scored_classes") or names)
+    longest = max(len(n) for n in names) + (14 if scored != set(names) else 0)
+    side = max(3.0, 0.75 * len(names))  # in, each matrix
+    plt, fig = _figure(2 * side + 0.09 * longest + 2.6, side + 0.08 * longest + 1.6)
     fig.set_layout_engine("constrained")
     axes = fig.subplots(1, 2)
     im = None
-    for ax, key in zip(axes, ("raw", "filtered"), strict=True):
-        part = evaluation[key]
-        cm = np.asarray(part["confusion_matrix_normalized"], dtype=float)
-        names = part["classes"]
+    for ax, key, part in zip(axes, ("raw", "filtered"), parts, strict=True):
+        cm = _aligned(part, names)
         im = ax.imshow(cm, vmin=0.0, vmax=1.0, cmap="Blues")
         ax.set_xticks(range(len(names)), names, rotation=40, ha="right")
-        ax.set_yticks(range(len(names)), names)
+        if key == "raw":  # the same rows on the right
+            ax.set_yticks(
+                range(len(names)), [n if n in scored else f"{n} (not in truth)" for n in names]
+            )
+            ax.set_ylabel("true class")
+        else:
+            ax.set_yticks(range(len(names)), [""] * len(names))
         ax.set_xlabel("predicted class")
-        ax.set_ylabel("true class")
-        ax.set_title(f"{key}: macro-F1 {part['macro_f1']:.3f}, accuracy {part['accuracy']:.3f}")
+        ax.set_title(
+            f"{key}\nmacro-F1 {part['macro_f1']:.3f} over {len(scored)} true classes, "
+            f"accuracy {part['accuracy']:.3f}",
+            fontsize=10,
+        )
         for i in range(cm.shape[0]):
+            if names[i] not in scored:
+                ax.axhspan(i - 0.5, i + 0.5, facecolor="0.92", edgecolor="0.6", hatch="//")
+                continue
             for j in range(cm.shape[1]):
                 ax.text(
                     j,
@@ -357,4 +421,4 @@ def confusion_matrices(evaluation: dict, path: str | Path) -> Path:
                     fontsize=8,
                 )
     fig.colorbar(im, ax=list(axes), shrink=0.8, label="fraction of the true class")
-    return _save(plt, fig, path)
+    return _save(plt, fig, path, tight=True)

@@ -265,13 +265,28 @@ def read_card(name: str | Path) -> dict[str, Any]:
     return card
 
 
+def _resolve(name: str | Path) -> tuple[Path, Path]:
+    """Model and card files of a path, or of a shipped model's bare name."""
+    from rough_map.resources import model_base, shipped_models
+
+    model_file, card_file = model_paths(name)
+    if model_file.is_file():
+        return model_file, card_file
+    bare = Path(name).name == str(name) and not str(name).endswith(MODEL_SUFFIX)
+    if bare and str(name) in shipped_models():
+        return model_paths(model_base(str(name)))
+    shipped = ", ".join(shipped_models()) or "none"
+    raise ModelError(f"{model_file}: no such model file (models shipped with rough_map: {shipped})")
+
+
 def load_terrain_model(name: str | Path, *, verify: bool = True) -> Any:
     """Load a model written by :func:`save_terrain_model`, safely.
 
     Parameters
     ----------
     name : str or Path
-        ``models/NAME`` or ``models/NAME.skops``.
+        ``models/NAME`` or ``models/NAME.skops`` (a path), or the bare name of a model
+        shipped with rough_map (``default``) when no such file exists.
     verify : bool
         Check the file's sha256 against its card (a missing card is then an error). With
         ``verify=False`` a missing card only logs a warning; a card that disagrees with the
@@ -291,9 +306,7 @@ def load_terrain_model(name: str | Path, *, verify: bool = True) -> Any:
 
     from rough_map.classify import MODEL_FORMAT, TerrainModel
 
-    model_file, card_file = model_paths(name)
-    if not model_file.is_file():
-        raise ModelError(f"{model_file}: no such model file")
+    model_file, card_file = _resolve(name)
     digest = sha256_file(model_file)
     if card_file.is_file():
         expected = read_card(card_file).get("sha256")

@@ -9,6 +9,9 @@ by file suffix in the registries ``READERS`` and ``WRITERS``:
 suffix             content
 =================  =============================================================
 .npy               (N, >=3) numeric array, or a structured array with x, y, z
+.npz               ``points`` as in .npy, or 1-D columns ``x``, ``y``, ``z``; an integer
+                   column ``c`` with ``c_scale`` and ``c_offset`` (m) reads as
+                   ``c_offset + c_scale * c`` (read only; ``rough-map simulate --compress``)
 .csv .xyz .txt     text, comma/semicolon/whitespace separated, optional header
 .ply .pcd          read and written with open3d
 .las .laz          read and written with laspy (.laz needs the lazrs backend)
@@ -345,6 +348,57 @@ def _read_npy(path: Path) -> np.ndarray:
     return arr
 
 
+def _read_npz(path: Path) -> np.ndarray:
+    """``points`` of an .npz archive, or its columns x, y, z (integers scaled to m)."""
+    import zipfile
+    import zlib
+
+    try:
+        loaded = np.load(path, allow_pickle=False)
+        if not isinstance(loaded, np.ndarray):
+            with loaded:
+                arrays = {name: loaded[name] for name in loaded.files}
+    except (ValueError, EOFError, OSError, zipfile.BadZipFile, zlib.error) as err:
+        raise FileFormatError(path, f"not a readable .npz archive (truncated?): {err}") from err
+    if isinstance(loaded, np.ndarray):
+        raise FileFormatError(path, "this is an .npy array, not an .npz archive")
+    if "points" in arrays:
+        return arrays["points"]
+    missing = [c for c in "xyz" if c not in arrays]
+    if missing:
+        raise FileFormatError(
+            path,
+            f"an .npz cloud holds 'points' (N x 3) or columns x, y, z; this one holds "
+            f"{sorted(arrays)}",
+            field=missing[0],
+        )
+    columns = []
+    for c in "xyz":
+        col = arrays[c]
+        if col.ndim != 1 or col.dtype.kind not in "fiu":
+            raise FileFormatError(
+                path,
+                f"expected a 1-D numeric column; got shape {col.shape}, dtype {col.dtype}",
+                field=c,
+            )
+        col = col.astype(np.float64)
+        for key in (f"{c}_scale", f"{c}_offset"):
+            value = arrays.get(key)
+            if value is not None and (value.ndim != 0 or value.dtype.kind not in "fiu"):
+                raise FileFormatError(
+                    path, f"expected a number in m; got shape {value.shape}", field=key
+                )
+        if f"{c}_scale" in arrays:
+            col *= float(arrays[f"{c}_scale"])
+        if f"{c}_offset" in arrays:
+            col += float(arrays[f"{c}_offset"])
+        columns.append(col)
+    if len({len(col) for col in columns}) > 1:
+        lengths = ", ".join(f"{c} {len(col)}" for c, col in zip("xyz", columns, strict=True))
+        raise FileFormatError(path, f"columns of different lengths: {lengths}", field="shape")
+    return np.column_stack(columns)
+
+
 _NUMBER = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$|^[+-]?(nan|inf|infinity)$", re.I)
 _LOADTXT_WHERE = re.compile(
     r"could not convert string (?P<value>.*) to \w+ at row (?P<row>\d+), column (?P<column>\d+)"
@@ -587,6 +641,7 @@ def _write_las(path: Path, points: np.ndarray) -> None:
 
 READERS: dict[str, CloudReader] = {
     ".npy": _read_npy,
+    ".npz": _read_npz,
     ".csv": _read_text,
     ".xyz": _read_text,
     ".txt": _read_text,

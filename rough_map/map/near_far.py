@@ -1312,6 +1312,30 @@ class AccuracyTable:
         acc = np.nan_to_num(self.accuracy[sel])
         return float((acc * n).sum() / n.sum()) if n.sum() else float("nan")
 
+    def to_dict(self) -> dict[str, Any]:
+        """The table as plain Python types, for JSON: the threshold, the overall accuracy
+        and one dict per bin (``from_m``, ``to_m``, ``cells``, ``confident``, ``accuracy``,
+        ``accuracy_all``; accuracies None for empty bins)."""
+
+        def number(v: float) -> float | None:
+            return float(v) if np.isfinite(v) else None
+
+        return {
+            "threshold": float(self.threshold),
+            "overall": number(self.overall()),
+            "bins": [
+                {
+                    "from_m": float(self.edges[k]),
+                    "to_m": float(self.edges[k + 1]),
+                    "cells": int(self.n[k]),
+                    "confident": int(self.n_confident[k]),
+                    "accuracy": number(self.accuracy[k]),
+                    "accuracy_all": number(self.accuracy_all[k]),
+                }
+                for k in range(len(self.n))
+            ],
+        }
+
     def to_text(self) -> str:
         """The table as aligned text (a Markdown table)."""
         lines = [

@@ -1,0 +1,458 @@
+"""Conventions every ``rough-map`` command keeps (issue: a CLI that keeps its conventions).
+
+-q/-v before or after the command, one-line errors for bad numbers and misspelt paths, help
+text with defaults on every option, status lines that -q silences, JSON written whole, and
+the files other tools read: a plain features CSV with its metadata beside it, a stereo
+calibration example that ``rough-map stereo`` loads.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rough_map.cli._common import emit_json, mentions_default
+from rough_map.cli.main import build_parser, main
+from rough_map.errors import FileFormatError, InputError
+from rough_map.io.traverse import load_traverse
+from rough_map.pipeline import (
+    features_metadata_path,
+    read_features,
+    traverse_features,
+    write_features,
+)
+from rough_map.simulate.course import SensorSpec, simulate
+
+ROOT = Path(__file__).resolve().parents[1]
+CALIBRATION = ROOT / "configs" / "stereo_calibration.yaml"
+
+
+def run(capsys: pytest.CaptureFixture[str], *argv: object) -> tuple[int, str, str]:
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 3 m mixed course, clouds only (about 8 frames, 2 points per 8 mm cell)."""
+    out = tmp_path_factory.mktemp("sim") / "small"
+    simulate(out, "mixed", length=3.0, seed=1, images=False, sensor=SensorSpec(points_per_cell=2))
+    return out
+
+
+@pytest.fixture(scope="module")
+def small_features(small: Path):
+    return traverse_features(small)
+
+
+@pytest.fixture(scope="module")
+def imaged(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``rough-map simulate --out D --course mixed --length 6 --image-every 3 --seed 1``."""
+    out = tmp_path_factory.mktemp("sim") / "imaged"
+    assert main(["-q", "simulate", "--out", str(out), "--course", "mixed", "--length", "6",
+                 "--image-every", "3", "--seed", "1"]) == 0  # fmt: skip
+    return out
+
+
+def _subparsers() -> dict[str, argparse.ArgumentParser]:
+    parser = build_parser()
+    (sub,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    return dict(sub.choices)
+
+
+COMMANDS = sorted(_subparsers())
+
+
+# --------------------------------------------------------------------------- parser
+
+
+@pytest.mark.parametrize(
+    ("argv", "quiet", "verbose"),
+    [
+        (["-q", "map", "T", "--out", "D"], True, 0),
+        (["map", "T", "--out", "D", "-q"], True, 0),
+        (["map", "-q", "T", "--out", "D"], True, 0),
+        (["-v", "features", "C"], False, 1),
+        (["features", "C", "-vv"], False, 2),
+        (["--quiet", "features", "C", "--verbose"], True, 1),
+        (["features", "C"], False, 0),
+    ],
+)
+def test_quiet_and_verbose_before_or_after_the_command(
+    argv: list[str], quiet: bool, verbose: int, tmp_path: Path
+) -> None:
+    (tmp_path / "T").mkdir()
+    (tmp_path / "C").touch()
+    args = build_parser().parse_args([str(tmp_path / a) if a in "TC" else a for a in argv])
+    assert (args.quiet, args.verbose) == (quiet, verbose)
+
+
+@pytest.mark.parametrize(
+    "command",
+    COMMANDS,
+)
+def test_every_option_has_help_showing_its_default(command: str) -> None:
+    parser = _subparsers()[command]
+    formatter = parser._get_formatter()
+    problems = []
+    for action in parser._actions:
+        if isinstance(action, argparse._HelpAction) or not action.option_strings:
+            continue
+        text = formatter._expand_help(action) if action.help else ""
+        if not text.strip():
+            problems.append(f"{action.option_strings[0]}: no help")
+        elif action.default not in (None, False, argparse.SUPPRESS) and not mentions_default(
+            text, action.default
+        ):
+            problems.append(f"{action.option_strings[0]}: help does not show {action.default!r}")
+    assert problems == []
+    assert str(0.1) in _subparsers()["map"].format_help()  # --resolution's default, shown
+
+
+@pytest.mark.parametrize(
+    "command",
+    COMMANDS,
+)
+def test_numeric_options_are_checked(command: str) -> None:
+    plain = [
+        a.option_strings[0]
+        for a in _subparsers()[command]._actions
+        if a.type in (float, int) and a.option_strings
+    ]
+    assert plain == []
+
+
+BAD_NUMBERS = [
+    (["map", "{t}", "--out", "{d}", "--resolution", "0"],
+     "argument --resolution: expected a positive number of metres, got '0'"),
+    (["map", "{t}", "--out", "{d}", "--resolution", "nan"],
+     "argument --resolution: expected a finite number, got 'nan'"),
+    (["features", "{t}", "--out", "{d}/f.csv", "--spacing", "-0.008"],
+     "argument --spacing: expected a positive number of metres, got '-0.008'"),
+    (["features", "{t}", "--out", "{d}/f.csv", "--size", "0"],
+     "argument --size: expected a positive number of metres, got '0'"),
+    (["features", "{t}", "--ahead", "inf"], "argument --ahead: expected a finite number"),
+    (["features", "{t}", "--roll", "ten"], "argument --roll: expected a number, got 'ten'"),
+    (["simulate", "--out", "{d}", "--length", "0"],
+     "argument --length: expected a positive number of metres, got '0'"),
+    (["simulate", "--out", "{d}", "--rate", "0"],
+     "argument --rate: expected a positive number of hertz, got '0'"),
+    (["simulate", "--out", "{d}", "--speed", "-0.5"],
+     "argument --speed: expected a positive number of metres per second, got '-0.5'"),
+    (["simulate", "--out", "{d}", "--image-every", "0"],
+     "argument --image-every: expected a positive whole number, got '0'"),
+    (["simulate", "--out", "{d}", "--image-every", "1.5"],
+     "argument --image-every: expected a whole number, got '1.5'"),
+    (["simulate", "--out", "{d}", "--seed", "-1"],
+     "argument --seed: expected a non-negative whole number, got '-1'"),
+    (["simulate", "--out", "{d}", "--noise=-1e-3"],
+     "argument --noise: expected a non-negative number of metres, got '-1e-3'"),
+    (["simulate", "--out", "{d}", "--width", "0"],
+     "argument --width: expected a positive number of metres, got '0'"),
+    (["train", "{t}", "--out", "{d}/m", "--cv", "1"],
+     "argument --cv: expected a whole number >= 2, got '1'"),
+    (["import", "{t}", "--points-topic", "/p", "--odom-topic", "/o", "--out", "{d}",
+      "--every", "0"], "argument --every: expected a positive whole number, got '0'"),
+    (["stereo", "{t}/traverse.json", "{t}/traverse.json", "--calib", "{t}/traverse.json",
+      "--out", "{d}/c.npy", "--size", "0"],
+     "argument --size: expected a positive number of metres, got '0'"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(("argv", "message"), BAD_NUMBERS)
+def test_bad_numbers_are_one_line_errors(
+    argv: list[str], message: str, small: Path, tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    out = tmp_path / "out"
+    code, stdout, err = run(capsys, *(a.format(t=small, d=out) for a in argv))
+    assert code == 2
+    assert stdout == ""
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    assert err.startswith(f"rough-map {argv[0]}: error: {message}"), err
+    assert not out.exists()  # refused before doing anything
+
+
+def test_a_patch_that_cannot_be_cut_is_one_line(small: Path, tmp_path, capsys) -> None:
+    cloud = small / "clouds" / "000000.npy"
+    code, _, err = run(capsys, "features", cloud, "--size", "0.02")
+    assert code == 2 and err.count("\n") == 1
+    assert "rough-map features: error: size / spacing gives 2 samples per profile" in err
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["features", "{x}"],
+        ["features", "{x}", "--out", "{d}/f.csv"],
+        ["map", "{x}", "--out", "{d}"],
+        ["classify", "{x}", "--model", "default", "--out", "{d}/l.csv"],
+        ["train", "{t}", "{x}", "--out", "{d}/m"],
+        ["evaluate", "{x}", "--model", "default"],
+        ["report", "{x}", "--out", "{d}"],
+        ["inspect", "{x}"],
+        ["import", "{x}", "--points-topic", "/p", "--odom-topic", "/o", "--out", "{d}"],
+        ["stereo", "{x}", "{t}/traverse.json", "--calib", "{t}/traverse.json", "--out", "{d}/c"],
+        ["stereo", "{t}/traverse.json", "{t}/traverse.json", "--calib", "{x}", "--out", "{d}/c"],
+        ["train", "{t}", "--out", "{d}/m", "--levels", "{x}"],
+    ],
+)
+def test_misspelt_paths_are_no_such_file_or_folder(
+    argv: list[str], small: Path, tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    missing = small.parent / "smal"  # a typo of the traverse folder
+    out = tmp_path / "out"
+    code, _, err = run(capsys, *(a.format(x=missing, t=small, d=out) for a in argv))
+    assert code == 2
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    assert f"no such file or folder: '{missing}'" in err
+    assert "suffix" not in err
+    assert not out.exists()
+
+
+def test_help_and_version_return_zero(capsys) -> None:
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.startswith("rough-map ")
+    assert main(["map", "--help"]) == 0
+    assert "--resolution M" in capsys.readouterr().out
+    assert main(["nosuchcommand"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "rough-map: error: argument COMMAND: invalid choice" in err
+
+
+# --------------------------------------------------------------------------- -q and status
+
+
+def test_quiet_leaves_stderr_empty(small: Path, tmp_path: Path, capsys) -> None:
+    runs = [
+        ["-q", "features", small, "--out", tmp_path / "f.csv"],
+        ["features", small, "--out", tmp_path / "f2.csv", "-q"],
+        ["features", small / "clouds" / "000001.npy", "-q"],
+        ["-q", "map", small, "--out", tmp_path / "map", "--no-png"],
+        ["classify", small, "--model", "default", "--out", tmp_path / "l.csv", "-q"],
+        ["-q", "simulate", "--out", tmp_path / "sim", "--length", "2", "--no-images"],
+        ["schema", "--out", tmp_path / "schema", "-q"],
+    ]
+    for argv in runs:
+        code, out, err = run(capsys, *argv)
+        assert code == 0, (argv, err)
+        assert err == "", (argv, err)
+        assert out
+
+
+def test_status_lines_show_without_quiet_and_errors_with_it(small, tmp_path, capsys) -> None:
+    code, _, err = run(capsys, "features", small, "--out", tmp_path / "f.csv")
+    n = len(load_traverse(small))
+    assert code == 0 and f"wrote {n} frames (0 invalid) to {tmp_path / 'f.csv'}" in err
+    code, _, err = run(capsys, "-q", "features", small)  # a traverse needs --out
+    assert code == 2 and err.startswith("rough-map features: error: a traverse needs --out")
+
+
+def test_units_in_text_output(small: Path, tmp_path: Path, capsys) -> None:
+    code, out, _ = run(capsys, "features", small / "clouds" / "000001.npy")
+    assert code == 0 and "m³/rad" in out and "m^3" not in out
+    code, out, _ = run(capsys, "features", small, "--out", tmp_path / "f.csv")
+    assert code == 0 and "R m³/rad (geo. mean)" in out
+    for module in (ROOT / "rough_map" / "cli").glob("*.py"):
+        if module.stem not in ("demo", "report", "evaluate"):  # another owner's
+            text = module.read_text()
+            assert "m^3" not in text and "m^2" not in text, module.name
+
+
+# --------------------------------------------------------------------------- JSON
+
+
+def test_emit_json_writes_whole_documents_or_nothing(capsys) -> None:
+    emit_json({"a": np.float32(1.5), "b": [np.nan, np.inf], "c": Path("x/y"), "d": np.arange(2)})
+    assert json.loads(capsys.readouterr().out) == {"a": 1.5, "b": [None, None], "c": "x/y",
+                                                   "d": [0, 1]}  # fmt: skip
+    with pytest.raises(TypeError, match="cannot write a object as JSON"):
+        emit_json({"ok": 1, "bad": object()})
+    assert capsys.readouterr().out == ""
+
+
+def test_accuracy_table_to_dict() -> None:
+    from rough_map.map.near_far import AccuracyTable
+
+    table = AccuracyTable(
+        edges=np.array([0.0, 1.5, 2.0]),
+        n=np.array([4, 0]),
+        n_confident=np.array([2, 0]),
+        accuracy=np.array([0.5, np.nan]),
+        accuracy_all=np.array([0.75, np.nan]),
+        threshold=0.6,
+    )
+    assert table.to_dict() == {
+        "threshold": 0.6,
+        "overall": 0.5,
+        "bins": [
+            {"from_m": 0.0, "to_m": 1.5, "cells": 4, "confident": 2, "accuracy": 0.5,
+             "accuracy_all": 0.75},
+            {"from_m": 1.5, "to_m": 2.0, "cells": 0, "confident": 0, "accuracy": None,
+             "accuracy_all": None},
+        ],
+    }  # fmt: skip
+    json.dumps(table.to_dict(), allow_nan=False)
+
+
+@pytest.mark.slow
+def test_map_json_on_a_traverse_with_images(imaged: Path, tmp_path: Path, capsys) -> None:
+    """near-to-far runs (stereo images), and its accuracy table is in the JSON."""
+    code, out, err = run(capsys, "-q", "map", imaged, "--out", tmp_path / "map", "--json")
+    assert code == 0, err
+    assert err == ""
+    summary = json.loads(out)  # one whole document
+    assert summary["frames"] == len(load_traverse(imaged))
+    assert summary["area_ratio"] > 1.0
+    bins = summary["far_accuracy_by_distance"]["bins"]
+    assert bins[0]["from_m"] == 0.0 and sum(b["cells"] for b in bins) > 0
+    outputs = summary["outputs"]
+    assert Path(outputs["features_metadata"]) == tmp_path / "map" / "features.csv.json"
+    assert Path(outputs["png_far_class"]).is_file()
+    assert read_features(outputs["features"]).valid.all()
+
+
+# --------------------------------------------------------------------------- features files
+
+
+def test_features_csv_is_plain_with_metadata_beside_it(small_features, tmp_path: Path) -> None:
+    path = write_features(small_features, tmp_path / "features.csv")
+    sidecar = tmp_path / "features.csv.json"
+    assert features_metadata_path(path) == sidecar
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))  # no options: the first line is the header
+    assert len(rows) == len(small_features)
+    assert rows[0]["frame"] == "0" and float(rows[0]["R"]) == pytest.approx(small_features["R"][0])
+    assert rows[0]["valid"] == "true"
+    meta = json.loads(sidecar.read_text())
+    assert meta["format"] == "rough_map features" and meta["name"] == small_features.name
+    np.testing.assert_allclose(meta["omega_rad_per_m"], small_features.omega, rtol=1e-15)
+    assert meta["units"]["R"] == "m³/rad" and meta["units"]["psd_01"] == "log10(m³/rad)"
+    assert meta["spectrum_columns"][0] == "psd_01" and "psd_01" in rows[0]
+
+    back = read_features(path)
+    assert back.name == small_features.name
+    np.testing.assert_array_equal(back.omega, small_features.omega)
+    np.testing.assert_allclose(back["R"], small_features["R"], rtol=1e-8)
+    np.testing.assert_allclose(back.log_psd, small_features.log_psd, rtol=1e-8)
+    assert list(back["label"]) == list(small_features["label"])
+
+
+def test_features_csv_reads_with_pandas(small_features, tmp_path: Path) -> None:
+    pd = pytest.importorskip("pandas")
+    frame = pd.read_csv(write_features(small_features, tmp_path / "features.csv"))
+    assert list(frame.columns[:3]) == ["frame", "t", "x"]
+    np.testing.assert_allclose(frame["R"], small_features["R"], rtol=1e-8)
+
+
+def test_features_csv_without_its_metadata(small_features, tmp_path: Path, capsys) -> None:
+    path = write_features(small_features, tmp_path / "features.csv")
+    moved = shutil.copy(path, tmp_path / "copy.csv")  # the CSV alone
+    with pytest.raises(FileFormatError, match=r"copy\.csv: its metadata file copy\.csv\.json is "
+                       r"missing \(it holds the wavenumbers of the psd_NN columns\)"):  # fmt: skip
+        read_features(moved)
+    code, _, err = run(capsys, "classify", moved, "--model", "default", "--out",
+                       tmp_path / "l.csv")  # fmt: skip
+    assert code == 2 and err.count("\n") == 1 and "copy.csv.json is missing" in err
+
+    sidecar = features_metadata_path(path)
+    meta = json.loads(sidecar.read_text())
+    sidecar.write_text(json.dumps({**meta, "omega_rad_per_m": meta["omega_rad_per_m"][:-1]}))
+    with pytest.raises(FileFormatError, match=r"55 wavenumbers for 56 psd_NN columns"):
+        read_features(path)
+    sidecar.write_text(json.dumps({**meta, "format_version": 99}))
+    with pytest.raises(FileFormatError, match="format_version 99; this rough_map reads up to 1"):
+        read_features(path)
+    sidecar.write_text("{not json")
+    with pytest.raises(FileFormatError, match="metadata is not JSON"):
+        read_features(path)
+
+
+def test_features_csv_of_rough_map_0_1_still_reads(small_features, tmp_path: Path) -> None:
+    """The old form: the wavenumbers in a '# rough_map features' first line."""
+    path = write_features(small_features, tmp_path / "new.csv")
+    omega = ",".join(f"{o:.12g}" for o in small_features.omega)
+    old = tmp_path / "old.csv"
+    old.write_text(f"# rough_map features of {small_features.name}; omega_rad_per_m={omega}\n"
+                   + path.read_text())  # fmt: skip
+    back = read_features(old)
+    assert back.name == small_features.name
+    np.testing.assert_allclose(back.omega, small_features.omega, rtol=1e-11)
+    np.testing.assert_allclose(back["R"], small_features["R"], rtol=1e-8)
+
+
+def test_features_parquet_keeps_the_metadata_inside(small_features, tmp_path: Path) -> None:
+    pq = pytest.importorskip("pyarrow.parquet")
+    path = write_features(small_features, tmp_path / "features.parquet")
+    assert not features_metadata_path(path).exists()
+    meta = json.loads(pq.read_schema(path).metadata[b"rough_map"])
+    assert meta["name"] == small_features.name
+    back = read_features(path)
+    np.testing.assert_array_equal(back.omega, small_features.omega)
+    np.testing.assert_allclose(back.log_psd, small_features.log_psd, rtol=1e-12)
+
+
+def test_features_command_reports_the_metadata_file(small: Path, tmp_path, capsys) -> None:
+    out = tmp_path / "f.csv"
+    code, stdout, _ = run(capsys, "features", small, "--out", out, "--json")
+    assert code == 0
+    assert json.loads(stdout)["metadata"] == str(tmp_path / "f.csv.json")
+    assert read_features(out).valid.all()
+
+
+# --------------------------------------------------------------------------- stereo
+
+
+def test_stereo_calibration_example_is_the_simulators_rig() -> None:
+    from rough_map.io.stereo import StereoCalibration
+
+    assert StereoCalibration.from_file(CALIBRATION) == StereoCalibration.xb3_default()
+
+
+@pytest.mark.slow
+def test_stereo_command_loads_the_calibration_example(imaged: Path, tmp_path, capsys) -> None:
+    out = tmp_path / "cloud.npy"
+    code, stdout, err = run(capsys, "stereo", imaged / "left" / "000000.png",
+                            imaged / "right" / "000000.png", "--calib", CALIBRATION,
+                            "--out", out)  # fmt: skip
+    assert code == 0, err
+    points = np.load(out)
+    assert stdout.strip() == f"{out}: {len(points)} points" and len(points) > 50_000
+    # over the 0.896 m patch 1 m ahead (plus its 5 cm crop margin), on the ground
+    lo, hi = np.percentile(points, [1, 99], axis=0)
+    assert lo[0] == pytest.approx(0.552, abs=0.06) and hi[0] == pytest.approx(1.448, abs=0.06)
+    assert lo[1] == pytest.approx(-0.448, abs=0.06) and hi[1] == pytest.approx(0.448, abs=0.06)
+    assert np.abs(np.median(points[:, 2])) < 0.05
+
+
+@pytest.mark.slow
+def test_points_from_stereo_marks_frames_without_a_pair(imaged: Path, tmp_path, capsys) -> None:
+    out = tmp_path / "f.csv"
+    code, _, err = run(capsys, "features", imaged, "--points-from", "stereo", "--out", out)
+    assert code == 0, err
+    feats = read_features(out)
+    paired = np.array([f.left is not None for f in load_traverse(imaged).frames])
+    assert paired.sum() == 7 and (~paired).sum() == 12  # --image-every 3 over 19 frames
+    assert list(feats["reason"][~paired]) == ["no stereo pair"] * 12
+    assert not feats.valid[~paired].any()
+    assert feats.valid[paired].all()
+
+
+def test_stereo_without_pairs_or_calibration(small: Path, tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="stereo needs a 'calibration' in the traverse"):
+        traverse_features(small, source="stereo")
+    from rough_map.io.stereo import StereoCalibration
+
+    doc = json.loads((small / "traverse.json").read_text())
+    doc["calibration"] = StereoCalibration.xb3_default().model_dump()
+    (tmp_path / "traverse.json").write_text(json.dumps(doc))
+    (tmp_path / "clouds").symlink_to(small / "clouds")
+    feats = traverse_features(tmp_path, source="stereo")  # no frame has a pair: none stops
+    assert not feats.valid.any() and set(feats["reason"]) == {"no stereo pair"}
+    assert traverse_features(tmp_path, source="auto").valid.all()  # auto: the clouds

@@ -1,0 +1,122 @@
+"""Generators of the README's measured tables (used by ``tools/readme_check.py --tables``).
+
+Each generator runs the documented commands (``rough-map simulate``, ``rough-map evaluate
+--json``, ``rough-map map --json``) on simulated courses the default model never saw and
+returns the Markdown table rows the README shows.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+EXE = [sys.executable, "-m", "rough_map"]
+
+#: (course cell, sensor cell, simulate runs) of the model-accuracy table.
+ACCURACY_ROWS: list[tuple[str, str, list[dict[str, object]]]] = [
+    ("mixed 36 m (21)", "default, 0.5 m/s", [{"course": "mixed", "length": 36, "seed": 21}]),
+    (
+        "mixed-reverse 36 m (22)",
+        "default, 0.5 m/s",
+        [{"course": "mixed-reverse", "length": 36, "seed": 22}],
+    ),
+    (
+        "random 80 m (23, 24)",
+        "default, 0.5 m/s",
+        [
+            {"course": "random", "length": 80, "seed": 23},
+            {"course": "random", "length": 80, "seed": 24},
+        ],
+    ),
+    (
+        "mixed 36 m (31)",
+        "6 points/cell, 1 mm noise, 0.3 m/s",
+        [
+            {
+                "course": "mixed",
+                "length": 36,
+                "seed": 31,
+                "points-per-cell": 6,
+                "noise": 0.001,
+                "speed": 0.3,
+            }
+        ],
+    ),
+    (
+        "mixed-reverse 36 m (32)",
+        "default, 0.7 m/s",
+        [{"course": "mixed-reverse", "length": 36, "seed": 32, "speed": 0.7}],
+    ),
+    (
+        "compact 22 m (33), ploughed 42 m (34)",
+        "default, 0.5 m/s",
+        [{"course": "compact", "seed": 33}, {"course": "ploughed", "seed": 34}],
+    ),
+    (
+        "random 60 m (35)",
+        "20 points/cell, 0.2 mm noise",
+        [
+            {
+                "course": "random",
+                "length": 60,
+                "seed": 35,
+                "points-per-cell": 20,
+                "noise": 0.0002,
+            }
+        ],
+    ),
+    (
+        "mixed 24 m (0), the demo's course",
+        "default, 0.5 m/s",
+        [{"course": "mixed", "length": 24, "seed": 0}],
+    ),
+]
+
+
+def _run(args: list[str], cwd: Path) -> str:
+    proc = subprocess.run([*EXE, *args], cwd=cwd, capture_output=True, text=True, check=False)
+    if proc.returncode != 0:
+        raise RuntimeError(f"rough-map {' '.join(args)} failed: {proc.stderr.strip()}")
+    return proc.stdout
+
+
+def _one(
+    sim: dict[str, object], work: Path, log: Callable[[str], None]
+) -> tuple[int, float, float, float]:
+    name = "_".join(f"{k}{v}" for k, v in sim.items())
+    out = work / name
+    opts = [a for k, v in sim.items() for a in (f"--{k}", str(v))]
+    log(f"  simulate {' '.join(opts)}")
+    _run(["-q", "simulate", "--out", str(out), "--no-images", *opts], work)
+    ev = json.loads(_run(["-q", "evaluate", str(out), "--model", "default", "--json"], work))
+    mp = json.loads(
+        _run(["-q", "map", str(out), "--out", str(out / "map"), "--no-png", "--json"], work)
+    )
+    frames = int(sum(sum(r) for r in ev["raw"]["confusion_matrix"]))
+    return frames, ev["raw"]["accuracy"], ev["filtered"]["accuracy"], mp["near_class_accuracy"]
+
+
+def accuracy_table(log: Callable[[str], None]) -> str:
+    """The default model on unseen simulated courses: frame accuracy and map cells."""
+    rows = [
+        "| course (seed) | sensor, speed | frames | raw | filtered | near-field map cells |",
+        "|---|---|---|---|---|---|",
+    ]
+    with tempfile.TemporaryDirectory(prefix="readme_tables_") as tmp:
+        for course, sensor, sims in ACCURACY_ROWS:
+            res = [_one(s, Path(tmp), log) for s in sims]
+            cells = [
+                " + ".join(str(r[0]) for r in res),
+                ", ".join(f"{r[1]:.2f}" for r in res),
+                ", ".join(f"{r[2]:.2f}" for r in res),
+                ", ".join(f"{r[3]:.3f}" for r in res),
+            ]
+            rows.append(f"| {course} | {sensor} | " + " | ".join(cells) + " |")
+    return "\n".join(rows) + "\n"
+
+
+TABLES: dict[str, Callable[[Callable[[str], None]], str]] = {"accuracy": accuracy_table}
