@@ -40,6 +40,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from rough_map.geometry import pose_matrix
 from rough_map.io.traverse import Traverse, load_traverse
 from rough_map.map import near_far as nf
 from rough_map.simulate.course import TRUTH_FILE, load_world
@@ -91,7 +92,7 @@ def run(traverse: Traverse, labels: list[str | None], **kwargs: object) -> tuple
         tiles = nf.tile_features(image, model.tile_px)
         t2 = time.perf_counter()
         if hasattr(model, "looks_"):
-            transform = nf.pose_matrix(frame.pose)
+            transform = pose_matrix(frame.pose)
             out.append(model._predict_features(tiles, calib, transform, t=frame.t, frame=i))
             times["predict"].append(time.perf_counter() - t2)
         t3 = time.perf_counter()
@@ -138,7 +139,7 @@ def texture_baseline(traverse: Traverse, world: HeightField, labels: list[str | 
         grad = grad.reshape(geometry.n_rows, t, geometry.n_cols, t).mean(axis=(1, 3))
         texture = np.column_stack([colour, lbp, np.log(grad.reshape(-1, 1) + 1e-3)])
         features = {"colour (this module)": colour, "colour + LBP + gradient": texture}
-        transform = nf.pose_matrix(frame.pose)
+        transform = pose_matrix(frame.pose)
         ground = geometry.ground @ transform[:3, :3].T + transform[:3, 3]
         ok = np.isfinite(geometry.distance)
         truth = np.full(n_tiles, -1)

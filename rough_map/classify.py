@@ -54,12 +54,12 @@ from sklearn.base import BaseEstimator, TransformerMixin
 from sklearn.utils.validation import check_is_fitted, validate_data
 
 from rough_map import errors
+from rough_map.patch import Extraction
 
 log = logging.getLogger(__name__)
 
 __all__ = [
     "CLASSIFIERS",
-    "DEFAULT_EXTRACTION",
     "EVIDENCE_GRID",
     "EXCLUDED_FEATURES",
     "FEATURE_DOC",
@@ -808,17 +808,6 @@ def make_classifier(
 #: Identifies the object layout of :class:`TerrainModel`; a loaded model must match it.
 MODEL_FORMAT = "rough_map.TerrainModel/1"
 
-#: Defaults of the feature extraction (:func:`rough_map.pipeline.traverse_features`) that a
-#: model records and that ``classify``/``evaluate`` repeat: patch in m, tilt, estimator.
-DEFAULT_EXTRACTION: dict[str, Any] = {
-    "ahead": 1.0,
-    "size": 0.896,
-    "spacing": 0.008,
-    "lateral": 0.0,
-    "use_imu": True,
-    "method": "unbiased",
-    "subtract_noise": True,
-}
 
 
 @dataclass(frozen=True, eq=False)
@@ -1037,10 +1026,10 @@ class TerrainModel:
         frames within 3 m is an isolated defect (:func:`rough_map.filter.isolated_spikes`):
         in ``"smooth"`` and ``"viterbi"`` modes the filter does not take its class. None
         turns the test off.
-    extraction : dict, optional
-        How the feature tables were computed (patch geometry in m, tilt, estimator), stored
-        so that ``classify`` and ``evaluate`` compute features the same way. Default
-        :data:`DEFAULT_EXTRACTION`.
+    extraction : Extraction or dict, optional
+        How the feature tables were computed (:class:`rough_map.patch.Extraction`: patch
+        geometry in m, tilt, estimator), stored (as ``Extraction.to_dict``) so that
+        ``classify`` and ``evaluate`` compute features the same way. Default the paper's.
     random_state : int, default 0
         Seed of the classifier.
 
@@ -1359,7 +1348,7 @@ class TerrainModel:
         self.omega_ = omega
         self.level_names_ = names
         self.level_thresholds_ = thresholds
-        self.extraction_ = dict(DEFAULT_EXTRACTION if self.extraction is None else self.extraction)
+        self.extraction_ = Extraction.from_dict(self.extraction).to_dict()
         self.training_ = {
             "sha256": training_hash(tables),
             "traverses": [
@@ -1530,9 +1519,9 @@ def feature_tables(
     sources : sequence of str or Path
         Traverse folders or files (features are computed with ``extraction``), or features
         tables (``.csv``/``.parquet`` written by ``rough-map features``, read as they are).
-    extraction : dict, optional
-        Patch geometry (``ahead``, ``size``, ``spacing``, ``lateral`` in m), ``use_imu``,
-        ``method`` and ``subtract_noise``; default :data:`DEFAULT_EXTRACTION`.
+    extraction : Extraction or dict, optional
+        The patch and estimator options (:class:`rough_map.patch.Extraction`, or its
+        ``to_dict`` form as a model records it); default the paper's.
     progress : bool
         Progress bars on stderr.
 
@@ -1540,13 +1529,9 @@ def feature_tables(
     -------
     list of FeatureTable
     """
-    from rough_map.patch import PatchSpec
     from rough_map.pipeline import read_features, traverse_features
 
-    opts = {**DEFAULT_EXTRACTION, **(extraction or {})}
-    spec = PatchSpec(
-        ahead=opts["ahead"], size=opts["size"], spacing=opts["spacing"], lateral=opts["lateral"]
-    )
+    ex = Extraction.from_dict(extraction)
     tables = []
     for source in sources:
         path = Path(source)
@@ -1556,10 +1541,10 @@ def feature_tables(
             tables.append(
                 traverse_features(
                     path,
-                    spec,
-                    use_imu=opts["use_imu"],
-                    method=opts["method"],
-                    subtract_noise=opts["subtract_noise"],
+                    ex.patch,
+                    use_imu=ex.use_imu,
+                    method=ex.method,
+                    subtract_noise=ex.subtract_noise,
                     progress=progress,
                 )
             )

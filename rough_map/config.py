@@ -21,6 +21,7 @@ only ``metadata`` is free-form.
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Annotated, Any, Literal
 
@@ -39,7 +40,8 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
-from rough_map.errors import FileFormatError, SchemaError
+from rough_map.errors import FileFormatError, InputError, SchemaError
+from rough_map.geometry import CAMERA_AXES_IN_VEHICLE, pose_matrix, rotation_matrix
 
 SCHEMA_VERSION = "1.0"
 """Version of the traverse format written by this release."""
@@ -80,15 +82,7 @@ class Pose(_Model):
 
     def matrix(self) -> np.ndarray:
         """4x4 homogeneous transform vehicle -> world (rotation, translation in m)."""
-        from scipy.spatial.transform import Rotation
-
-        transform = np.eye(4)
-        # Extrinsic x-y-z rotations compose as Rz @ Ry @ Rx.
-        transform[:3, :3] = Rotation.from_euler(
-            "xyz", [self.roll, self.pitch, self.yaw]
-        ).as_matrix()
-        transform[:3, 3] = [self.x, self.y, self.z]
-        return transform
+        return pose_matrix(self)
 
 
 class ImuAttitude(_Model):
@@ -127,6 +121,45 @@ class Crs(_Model):
     def epsg(self) -> int | None:
         """The EPSG code, or None for a local frame."""
         return None if self.code == "local" else int(self.code.split(":")[1])
+
+    @classmethod
+    def from_any(cls, value: Any) -> Crs:
+        """A :class:`Crs` from None (local), ``"local"``, ``"EPSG:32633"``, ``32633``, a
+        mapping like the traverse file's ``crs``, or a :class:`Crs`.
+
+        Raises
+        ------
+        InputError
+            Anything else, or an invalid code or origin.
+        """
+        if isinstance(value, Crs):
+            return value
+        if value is None:
+            value = "local"
+        try:
+            return cls.model_validate(_crs_shorthand(value))
+        except (ValueError, ValidationError) as err:
+            raise InputError(f"cannot read a CRS from {value!r}: {_first_error(err)}") from None
+
+    def proj_string(self) -> str | None:
+        """A CRS definition for GIS tools: ``"EPSG:<n>"``; for a local frame with a geodetic
+        origin a transverse Mercator centred on it (x east, y north, m, scale 1 at the
+        origin); None for a local frame without origin (an engineering CRS)."""
+        if self.epsg is not None:
+            return self.code
+        if self.origin is None:
+            return None
+        return (
+            f"+proj=tmerc +lat_0={self.origin.lat:.10f} +lon_0={self.origin.lon:.10f} +k=1 "
+            "+x_0=0 +y_0=0 +ellps=WGS84 +units=m +no_defs"
+        )
+
+
+def _first_error(err: Exception) -> str:
+    if isinstance(err, ValidationError):
+        first = err.errors()[0]
+        return f"{format_location(first['loc']) or 'crs'}: {first['msg']}"
+    return str(err)
 
 
 def _crs_shorthand(value: object) -> object:
@@ -177,8 +210,9 @@ class StereoCalibration(_Model):
     ``baseline`` m along the left camera's +x axis. Camera frame: OpenCV (x right, y down,
     z forward); vehicle frame: x forward, y left, z up.
 
-    Any object with these attributes validates (``from_attributes``), so the calibration
-    objects of :mod:`rough_map.io.stereo` can be put in a traverse as they are.
+    The one calibration of rough_map: a traverse's ``calibration``, the stereo matcher's, the
+    renderer's and near-to-far's. Any object with these attributes validates
+    (``from_attributes``).
     """
 
     model_config = ConfigDict(from_attributes=True)
@@ -207,6 +241,72 @@ class StereoCalibration(_Model):
     def camera_to_vehicle_matrix(self) -> np.ndarray:
         """The 4x4 transform left camera -> vehicle as an array (m)."""
         return np.asarray(self.camera_to_vehicle, dtype=float)
+
+    @property
+    def K(self) -> np.ndarray:
+        """3x3 camera matrix in px."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def T_vehicle_camera(self) -> np.ndarray:
+        """4x4 transform left camera -> vehicle as an array (m)."""
+        return np.asarray(self.camera_to_vehicle, dtype=float)
+
+    @property
+    def focal_baseline(self) -> float:
+        """``fx * baseline`` in px m: depth ``Z = focal_baseline / d``."""
+        return self.fx * self.baseline
+
+    @classmethod
+    def from_file(cls, path: str | Path) -> StereoCalibration:
+        """Read a calibration from YAML (``.yaml``/``.yml``) or JSON (``.json``).
+
+        Raises
+        ------
+        FileFormatError
+            The file cannot be read or parsed.
+        SchemaError
+            A field is missing, unknown or invalid.
+        """
+        return load_model(path, cls)
+
+    def to_file(self, path: str | Path) -> None:
+        """Write the calibration as YAML (or JSON if ``path`` ends in ``.json``)."""
+        path = Path(path)
+        data = self.model_dump()
+        text = (
+            json.dumps(data, indent=2)
+            if path.suffix.lower() == ".json"
+            else yaml.safe_dump(data, sort_keys=False)
+        )
+        path.write_text(text, encoding="utf-8")
+
+    @classmethod
+    def xb3_default(cls) -> StereoCalibration:
+        """An XB3-like rig (wide pair, 3.8 mm lenses) as mounted for the paper's patch.
+
+        1280x960 px, ``fx = fy = 985`` px (66 deg horizontal field of view), baseline 0.24 m.
+        The left camera is 1.00 m above the ground, 0.20 m behind the vehicle origin and
+        0.12 m to the left of the centre line (the rig is centred), pitched down 42 deg. The
+        flat 0.896 m patch centred 1 m ahead projects to columns 376-1095 and rows 292-672 of
+        the left image (>= 184 px clear of the right image's left edge), disparities 125-193
+        px (depth 1.23-1.89 m). Widened by 5 cm and +-0.15 m in height (the patch path's
+        search volume) it still fits: columns 298-1198, rows 208-773, disparities 116-217.
+        """
+        rotation = rotation_matrix(pitch=math.radians(42.0)) @ CAMERA_AXES_IN_VEHICLE
+        transform = np.eye(4)
+        transform[:3, :3] = rotation
+        transform[:3, 3] = [-0.20, 0.12, 1.00]
+        return cls(
+            fx=985.0,
+            fy=985.0,
+            cx=639.5,
+            cy=479.5,
+            width=1280,
+            height=960,
+            baseline=0.24,
+            camera_to_vehicle=transform.tolist(),
+        )
 
 
 class FrameSpec(_Model):
@@ -412,7 +512,7 @@ def write_schemas(out_dir: str | Path) -> list[Path]:
     list of Path
         The files written.
     """
-    from rough_map.io.pointcloud import atomic_output
+    from rough_map._files import atomic_output
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -52,3 +52,11 @@ class ModelError(RoughMapError, ValueError):
 
 class NotFittedError(RoughMapError, AttributeError):
     """An estimator was used before ``fit``."""
+
+
+class RoughMapWarning(UserWarning):
+    """Root of rough_map's warnings."""
+
+
+class EmptyMapWarning(RoughMapWarning):
+    """A traverse gave no valid patch: the map is all nodata."""

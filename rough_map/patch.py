@@ -18,11 +18,14 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from rough_map.errors import InputError, PatchError
+from rough_map.geometry import rotation_matrix
 
 log = logging.getLogger(__name__)
 
@@ -91,6 +94,90 @@ class PatchSpec:
         return np.array([[self.x0, self.y0], [x1, self.y0], [x1, y1], [self.x0, y1]])
 
 
+#: Estimators of :func:`rough_map.psd.patch_roughness` an :class:`Extraction` may name.
+METHODS = ("unbiased", "paper")
+
+
+@dataclass(frozen=True)
+class Extraction:
+    """How the frames of a traverse become features: the patch and the estimator options.
+
+    The one extraction spec of rough_map. It is built once, from a model's record
+    (:meth:`from_dict` of ``TerrainModel.extraction_``) or from the command line, and passed
+    to the features, the workflow, near-to-far and the CLI; nothing else holds a default
+    patch.
+
+    Attributes
+    ----------
+    patch : PatchSpec
+        Where the patch is and how it is gridded (m).
+    use_imu : bool
+        Compensate the frames' IMU roll and pitch (paper Eq. 11).
+    method : {"unbiased", "paper"}
+        The PSD fit (:func:`rough_map.psd.patch_roughness`).
+    subtract_noise : bool
+        Subtract the noise floor estimated from the within-cell scatter.
+    """
+
+    patch: PatchSpec = field(default_factory=PatchSpec)
+    use_imu: bool = True
+    method: str = "unbiased"
+    subtract_noise: bool = True
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.patch, PatchSpec):
+            raise InputError(f"patch must be a PatchSpec, got {type(self.patch).__name__}")
+        if self.method not in METHODS:
+            raise InputError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        for name in ("use_imu", "subtract_noise"):
+            if not isinstance(getattr(self, name), bool):
+                raise InputError(f"{name} must be true or false, got {getattr(self, name)!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        """The flat form a model and its card record: ``ahead, size, spacing, lateral`` (m),
+        ``use_imu``, ``method``, ``subtract_noise``."""
+        return {
+            "ahead": self.patch.ahead,
+            "size": self.patch.size,
+            "spacing": self.patch.spacing,
+            "lateral": self.patch.lateral,
+            "use_imu": self.use_imu,
+            "method": self.method,
+            "subtract_noise": self.subtract_noise,
+        }
+
+    @classmethod
+    def from_dict(cls, value: Mapping[str, Any] | Extraction | None) -> Extraction:
+        """An :class:`Extraction` from :meth:`to_dict`'s form (missing keys take the
+        defaults), an :class:`Extraction`, or None (the defaults).
+
+        Raises
+        ------
+        InputError
+            An unknown key or an invalid value.
+        """
+        if isinstance(value, Extraction):
+            return value
+        if value is None:
+            return cls()
+        if not isinstance(value, Mapping):
+            raise InputError(f"extraction must be a mapping, got {type(value).__name__}")
+        known = {"ahead", "size", "spacing", "lateral", "use_imu", "method", "subtract_noise"}
+        unknown = sorted(set(value) - known)
+        if unknown:
+            raise InputError(f"unknown extraction settings {unknown}; known: {sorted(known)}")
+        geometry = {k: value[k] for k in ("ahead", "size", "spacing", "lateral") if k in value}
+        options = {k: value[k] for k in ("use_imu", "method", "subtract_noise") if k in value}
+        return cls(patch=PatchSpec(**geometry), **options)
+
+    @property
+    def near_range(self) -> tuple[float, float]:
+        """Nearest and farthest x (m, vehicle frame) of the patch: the near field that
+        near-to-far learns from."""
+        x0 = self.patch.x0
+        return x0, x0 + self.patch.n * self.patch.spacing
+
+
 @dataclass(frozen=True, eq=False)
 class GriddedPatch:
     """Height grid of a patch, with what the gridding learned about the points.
@@ -144,20 +231,6 @@ class GriddedPatch:
         where a cell holds about one sample of the surface.
         """
         return "cell_mean" if self.points_per_cell >= 4 else "point"
-
-
-def rotation_matrix(roll: float = 0.0, pitch: float = 0.0, yaw: float = 0.0) -> np.ndarray:
-    """``Rz(yaw) @ Ry(pitch) @ Rx(roll)``; angles in rad.
-
-    With ``yaw = 0`` this is the paper's Eq. 11 (``phi`` = pitch, ``theta`` = roll).
-    """
-    cr, sr = math.cos(roll), math.sin(roll)
-    cp, sp = math.cos(pitch), math.sin(pitch)
-    cy, sy = math.cos(yaw), math.sin(yaw)
-    rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
-    ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
-    rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
-    return rz @ ry @ rx
 
 
 def _as_cloud(points: np.ndarray, name: str = "points") -> np.ndarray:

@@ -310,21 +310,12 @@ class _StereoSource:
     def __init__(self, traverse, spec: PatchSpec) -> None:
         self.traverse = traverse
         self.spec = spec
-        self._calib = None
 
     @property
     def calib(self):
-        from rough_map.io.stereo import StereoCalibration
-
-        if self._calib is None:
-            if self.traverse.spec.calibration is None:
-                raise InputError(
-                    f"{self.traverse.name}: stereo needs a 'calibration' in the traverse"
-                )
-            self._calib = StereoCalibration.model_validate(
-                self.traverse.spec.calibration.model_dump()
-            )
-        return self._calib
+        if self.traverse.spec.calibration is None:
+            raise InputError(f"{self.traverse.name}: stereo needs a 'calibration' in the traverse")
+        return self.traverse.spec.calibration
 
     def cloud(self, i: int) -> np.ndarray:
         """The cloud of frame ``i``'s stereo pair (vehicle frame, m), over the patch."""
@@ -421,7 +412,7 @@ def write_features(table: FeatureTable, path: str | Path) -> Path:
     Path
         ``path`` (the table; the metadata is at :func:`features_metadata_path`).
     """
-    from rough_map.io.pointcloud import atomic_output
+    from rough_map._files import atomic_output
 
     path = Path(path)
     names = list(COLUMNS) + table.spectrum_names()

@@ -405,7 +405,7 @@ def write_leakage_tables(path: Path = _SHIPPED_TABLES, sizes=(56, 64, 100, 112, 
     The package ships them (``rough_map/data/leakage_tables.npz``) so that a one-shot
     command does not spend ~50 ms building one; a test checks they are up to date.
     """
-    from rough_map.io.pointcloud import atomic_output
+    from rough_map._files import atomic_output
 
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_output(path) as tmp, open(tmp, "wb") as fh:

@@ -93,27 +93,22 @@ def analyse(
     from rough_map.io.model import load_terrain_model
     from rough_map.io.traverse import Traverse, load_traverse
     from rough_map.map import fuse_traverse
-    from rough_map.patch import PatchSpec
+    from rough_map.patch import Extraction
     from rough_map.pipeline import traverse_features
 
     if not isinstance(traverse, Traverse):
         traverse = load_traverse(traverse)
     if model is not None and not hasattr(model, "predict"):
         model = load_terrain_model(model)
-    extraction = dict(getattr(model, "extraction_", None) or {})
-    spec = PatchSpec(
-        ahead=extraction.get("ahead", 1.0),
-        size=extraction.get("size", 0.896),
-        spacing=extraction.get("spacing", 0.008),
-        lateral=extraction.get("lateral", 0.0),
-    )
+    extraction = Extraction.from_dict(getattr(model, "extraction_", None))
+    spec = extraction.patch
     if features is None:
         features = traverse_features(
             traverse,
             spec,
-            use_imu=extraction.get("use_imu", True),
-            method=extraction.get("method", "unbiased"),
-            subtract_noise=extraction.get("subtract_noise", True),
+            use_imu=extraction.use_imu,
+            method=extraction.method,
+            subtract_noise=extraction.subtract_noise,
             progress=progress,
         )
     prediction = None
@@ -301,7 +296,7 @@ def write_tables(result: TraverseAnalysis, out_dir: str | Path) -> dict[str, Pat
     """
     import csv
 
-    from rough_map.io.pointcloud import atomic_output
+    from rough_map._files import atomic_output
     from rough_map.pipeline import features_metadata_path, write_features
 
     out = Path(out_dir)

@@ -410,7 +410,7 @@ def test_features_command_reports_the_metadata_file(small: Path, tmp_path, capsy
 
 
 def test_stereo_calibration_example_is_the_simulators_rig() -> None:
-    from rough_map.io.stereo import StereoCalibration
+    from rough_map.config import StereoCalibration
 
     assert StereoCalibration.from_file(CALIBRATION) == StereoCalibration.xb3_default()
 
@@ -447,7 +447,7 @@ def test_points_from_stereo_marks_frames_without_a_pair(imaged: Path, tmp_path, 
 def test_stereo_without_pairs_or_calibration(small: Path, tmp_path: Path) -> None:
     with pytest.raises(InputError, match="stereo needs a 'calibration' in the traverse"):
         traverse_features(small, source="stereo")
-    from rough_map.io.stereo import StereoCalibration
+    from rough_map.config import StereoCalibration
 
     doc = json.loads((small / "traverse.json").read_text())
     doc["calibration"] = StereoCalibration.xb3_default().model_dump()

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import rasterio
 
+from rough_map.config import Crs
 from rough_map.errors import InputError
 from rough_map.export import export_map
 from rough_map.export.geotiff import (
@@ -26,7 +27,6 @@ from rough_map.export.png import (
 )
 from rough_map.map import (
     EmptyMapWarning,
-    MapCrs,
     from_grid_map,
     fuse_cell_probabilities,
     fuse_traverse,
@@ -157,9 +157,9 @@ def test_gtiff_fallback_keeps_overviews(tmp_path, utm_map):
 @pytest.mark.parametrize(
     ("crs", "check"),
     [
-        (MapCrs("EPSG:32633"), lambda c: c.to_epsg() == 32633),
+        (Crs.from_any("EPSG:32633"), lambda c: c.to_epsg() == 32633),
         (
-            MapCrs("local", (40.3515, 18.175, 50.0)),
+            Crs.from_any({"code": "local", "origin": {"lat": 40.3515, "lon": 18.175, "alt": 50.0}}),
             lambda c: (
                 c.to_dict().get("proj") == "tmerc"
                 and c.to_dict()["lat_0"] == pytest.approx(40.3515)
@@ -167,7 +167,7 @@ def test_gtiff_fallback_keeps_overviews(tmp_path, utm_map):
                 and c.to_dict().get("k", c.to_dict().get("k_0")) == 1
             ),
         ),
-        (MapCrs("local"), lambda c: c.to_wkt().startswith("LOCAL_CS")),
+        (Crs.from_any("local"), lambda c: c.to_wkt().startswith("LOCAL_CS")),
     ],
     ids=["epsg", "local-tmerc", "local-engineering"],
 )
@@ -179,7 +179,8 @@ def test_crs_is_written(tmp_path, patches, crs, check):
         assert ds.crs is not None and check(ds.crs)
         assert ds.tags()["crs_code"] == crs.code
         if crs.origin:
-            assert json.loads(ds.tags()["geodetic_origin"]) == list(crs.origin)
+            o = crs.origin
+            assert json.loads(ds.tags()["geodetic_origin"]) == [o.lat, o.lon, o.alt]
 
 
 def test_overview_factors():

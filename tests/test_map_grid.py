@@ -11,7 +11,6 @@ from rough_map.map import (
     GridGeometry,
     GridMap,
     LayerInfo,
-    MapCrs,
     from_grid_map,
     to_grid_map,
 )
@@ -19,7 +18,7 @@ from rough_map.map import (
 
 def ramp_map(shape=(7, 12), res=0.25, origin=(-1.0, 2.5)) -> GridMap:
     """A map whose layer ``xy`` is 1000 x + y at each cell centre (unique per cell)."""
-    g = GridMap(GridGeometry(res, origin, shape, MapCrs("EPSG:32633"), "utm"))
+    g = GridMap(GridGeometry(res, origin, shape, Crs.from_any("EPSG:32633"), "utm"))
     xc, yc = g.geometry.xy()
     g.add_layer("xy", units="m", description="1000 x + y", data=1000 * xc[None, :] + yc[:, None])
     g.add_layer("count", units="1", fill=0.0)
@@ -64,7 +63,7 @@ def test_geotransform_is_north_up():
         ({"resolution": 0.0}, "resolution must be a positive"),
         ({"resolution": 0.1, "origin": (math.nan, 0.0)}, "origin must be finite"),
         ({"resolution": 0.1, "shape": (-1, 3)}, "shape must be"),
-        ({"resolution": 0.1, "crs": "WGS84"}, "crs code must be"),
+        ({"resolution": 0.1, "crs": "WGS84"}, "crs must be .local., .EPSG:<code>."),
     ],
 )
 def test_bad_geometry(kwargs, match):
@@ -76,16 +75,16 @@ def test_bad_geometry(kwargs, match):
 
 
 def test_crs_from_traverse_spec_and_shorthands():
-    local = MapCrs.from_any(Crs(code="local", origin=GeodeticOrigin(lat=40.35, lon=18.17, alt=5)))
-    assert local.code == "local" and local.origin == (40.35, 18.17, 5.0)
+    local = Crs.from_any(Crs(code="local", origin=GeodeticOrigin(lat=40.35, lon=18.17, alt=5)))
+    assert local.code == "local" and local.origin == GeodeticOrigin(lat=40.35, lon=18.17, alt=5)
     proj = local.proj_string()
     assert proj is not None and "+proj=tmerc" in proj and "+lat_0=40.35" in proj
     assert "+lon_0=18.17" in proj and "+k=1" in proj and "+ellps=WGS84" in proj
-    assert MapCrs.from_any(32633).epsg == 32633
-    assert MapCrs.from_any("epsg:32633").proj_string() == "EPSG:32633"
-    assert MapCrs.from_any(None).proj_string() is None
+    assert Crs.from_any(32633).epsg == 32633
+    assert Crs.from_any("epsg:32633").proj_string() == "EPSG:32633"
+    assert Crs.from_any(None).proj_string() is None
     with pytest.raises(InputError, match="only meaningful with crs 'local'"):
-        MapCrs("EPSG:32633", (1.0, 2.0, 3.0))
+        Crs.from_any({"code": "EPSG:32633", "origin": {"lat": 1.0, "lon": 2.0, "alt": 3.0}})
 
 
 # -- layers ---------------------------------------------------------------------------------

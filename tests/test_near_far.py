@@ -9,18 +9,15 @@ import cv2
 import numpy as np
 import pytest
 
-from rough_map.config import TraverseSpec
+from rough_map.config import StereoCalibration, TraverseSpec
 from rough_map.errors import InputError, NotFittedError
-from rough_map.io.stereo import StereoCalibration
+from rough_map.geometry import ground_to_pixel, pixel_to_ground, pose_matrix
 from rough_map.io.traverse import Traverse, save_traverse
 from rough_map.map.near_far import (
     FarPrediction,
     NearToFar,
     area_coverage,
     far_field_accuracy,
-    ground_to_pixel,
-    pixel_to_ground,
-    pose_matrix,
     run_traverse,
     tile_features,
 )

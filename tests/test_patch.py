@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 from rough_map.errors import InputError, PatchError
+from rough_map.geometry import rotation_matrix
 from rough_map.patch import (
     PatchSpec,
     compensate_tilt,
     extract_patch,
     grid_points,
-    rotation_matrix,
 )
 from rough_map.psd import patch_roughness
 

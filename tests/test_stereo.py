@@ -14,6 +14,7 @@ from pydantic import ValidationError
 from rough_map import patch
 from rough_map.cli.main import main
 from rough_map.errors import FileFormatError, InputError, SchemaError
+from rough_map.geometry import rotation_matrix
 from rough_map.io.stereo import (
     PATCH_AHEAD,
     PATCH_SIZE,
@@ -120,7 +121,7 @@ def test_level_plane_follows_the_tilt(roll, pitch):
     a, b, c = level_plane(roll, pitch, -0.01)
     x, y = np.meshgrid([0.5, 1.0, 1.5], [-0.4, 0.0, 0.4])
     pts = np.column_stack([x.ravel(), y.ravel(), (a * x + b * y + c).ravel()])
-    levelled = pts @ patch.rotation_matrix(roll, pitch).T
+    levelled = pts @ rotation_matrix(roll, pitch).T
     np.testing.assert_allclose(levelled[:, 2], -0.01, atol=1e-12)
     if pitch > 0:
         assert a > 0  # nose down: the ground ahead rises in the vehicle frame

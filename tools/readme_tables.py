@@ -72,7 +72,7 @@ ACCURACY_ROWS: list[tuple[str, str, list[dict[str, object]]]] = [
     (
         "mixed 24 m (0), the demo's course",
         "default, 0.5 m/s",
-        [{"course": "mixed", "length": 24, "seed": 0}],
+        [{"course": "mixed", "length": 24, "seed": 0, "width": 6}],
     ),
 ]
 

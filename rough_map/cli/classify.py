@@ -75,10 +75,10 @@ def _fmt(value: object) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from rough_map._files import atomic_output
     from rough_map.classify import feature_tables
     from rough_map.errors import InputError
     from rough_map.io.model import load_terrain_model
-    from rough_map.io.pointcloud import atomic_output
 
     if args.out.suffix.lower() != ".csv":
         raise InputError(f"--out must be a .csv file, not {args.out.name!r}")

@@ -295,11 +295,11 @@ def _stereo_check(trav) -> str:
 def _stereo_rows(trav) -> tuple[list[list[str]], str]:
     """Features of the stereo clouds against those of the range clouds, per frame pair
     (rows of STEREO_HEAD), and the median stereo time."""
-    from rough_map.io.stereo import StereoCalibration, read_image, stereo_to_cloud
+    from rough_map.io.stereo import read_image, stereo_to_cloud
     from rough_map.patch import PatchSpec
     from rough_map.pipeline import frame_features
 
-    calib = StereoCalibration.model_validate(trav.spec.calibration.model_dump())
+    calib = trav.spec.calibration
     spec = PatchSpec()
     rows = []
     times = []

@@ -40,9 +40,11 @@ from rough_map.cli._common import (
     emit_json,
     existing_path,
     int_at_least,
+    patch_spec,
     status,
     table,
 )
+from rough_map.patch import Extraction
 
 #: rough_map.classify.CLASSIFIERS, spelled out so that the parser does not import sklearn.
 CLASSIFIERS = ("logistic", "hgb", "forest")
@@ -114,15 +116,7 @@ def run(args: argparse.Namespace) -> int:
 
     levels = load_roughness_levels(args.levels)
     _check_labelled(args.traverses)
-    extraction = {
-        "ahead": args.ahead,
-        "size": args.size,
-        "spacing": args.spacing,
-        "lateral": args.lateral,
-        "use_imu": not args.no_tilt,
-        "method": "unbiased",
-        "subtract_noise": True,
-    }
+    extraction = Extraction(patch=patch_spec(args), use_imu=not args.no_tilt).to_dict()
     tables = feature_tables(args.traverses, extraction, progress=args.progress)
     if args.save_features is not None:
         args.save_features.mkdir(parents=True, exist_ok=True)

@@ -49,7 +49,7 @@ def _figure(width: float = 8.0, height: float = 5.0):
 
 def _save(plt, fig, path: str | Path, *, tight: bool = False) -> Path:
     """Save and close; ``tight`` crops the PNG to what is drawn (nothing cut off)."""
-    from rough_map.io.pointcloud import atomic_output
+    from rough_map._files import atomic_output
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -346,7 +346,7 @@ def map_layers(
 
 def _save_figure(fig, path: str | Path) -> Path:
     """Save a Figure made without pyplot (it has its own Agg canvas)."""
-    from rough_map.io.pointcloud import atomic_output
+    from rough_map._files import atomic_output
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

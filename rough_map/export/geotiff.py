@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from rough_map import __version__
+from rough_map.config import Crs
 from rough_map.errors import InputError
 from rough_map.export.profiles import (
     CLASS_COLOURS,
@@ -41,7 +42,7 @@ from rough_map.export.profiles import (
     ClassProfile,
     ValuesProfile,
 )
-from rough_map.map.grid import GridMap, MapCrs
+from rough_map.map.grid import GridMap
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +63,7 @@ LOCAL_WKT = (
 )
 
 
-def rasterio_crs(crs: MapCrs) -> Any:
+def rasterio_crs(crs: Crs) -> Any:
     """The :class:`rasterio.crs.CRS` of a map's CRS (see the module docstring)."""
     from rasterio.crs import CRS
 
@@ -120,7 +121,8 @@ def _dataset_tags(grid: GridMap) -> dict[str, str]:
         "resolution_m": repr(grid.resolution),
     }
     if crs.origin is not None:
-        tags["geodetic_origin"] = json.dumps(list(crs.origin))
+        o = crs.origin
+        tags["geodetic_origin"] = json.dumps([o.lat, o.lon, o.alt])
     for key in ("class_names", "level_names"):
         if grid.attrs.get(key):
             tags[key] = json.dumps(list(grid.attrs[key]))
@@ -172,7 +174,7 @@ def _write(
     from rasterio.shutil import copy as rio_copy
     from rasterio.transform import Affine
 
-    from rough_map.io.pointcloud import atomic_output
+    from rough_map._files import atomic_output
 
     count, height, width = bands.shape
     if height == 0 or width == 0:

@@ -587,7 +587,7 @@ def write_layer_png(
     Path
         ``path``.
     """
-    from rough_map.io.pointcloud import atomic_output
+    from rough_map._files import atomic_output
 
     fig = layer_figure(grid, layer, style=style, title=title, view=view)
     path = Path(path)

@@ -478,7 +478,7 @@ def _index(
     evaluation: dict | None,
     tables: list[ReportTable],
 ) -> Path:
-    from rough_map.io.pointcloud import atomic_output
+    from rough_map._files import atomic_output
 
     esc = html.escape
     f = result.features

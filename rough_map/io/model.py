@@ -224,8 +224,8 @@ def save_terrain_model(
     """
     import skops.io as sio
 
+    from rough_map._files import atomic_output
     from rough_map.classify import TerrainModel
-    from rough_map.io.pointcloud import atomic_output
 
     if not isinstance(model, TerrainModel) or not hasattr(model, "classifier_"):
         raise ModelError(f"only a fitted TerrainModel can be saved; got {type(model).__name__}")

@@ -25,23 +25,19 @@ Writers replace the target atomically: they write a temporary file in the same f
 from __future__ import annotations
 
 import logging
-import os
 import re
-import uuid
 import warnings
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
 import numpy as np
 
+from rough_map._files import PathLike, atomic_output
 from rough_map.errors import FileFormatError, InputError
 
 log = logging.getLogger(__name__)
 
-PathLike = str | os.PathLike[str]
 
 
 class CloudReader(Protocol):
@@ -132,35 +128,6 @@ def write_cloud(path: PathLike, points: np.ndarray) -> Path:
         writer(tmp, pts.astype(np.float64, copy=False))
     log.debug("wrote %d points to %s", len(pts), path)
     return path
-
-
-@contextmanager
-def atomic_output(path: PathLike) -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; on success move it onto ``path``.
-
-    The temporary name keeps the suffix of ``path`` (backends such as open3d and laspy pick
-    the format from it) and starts with a dot. On error the temporary file is removed and
-    ``path`` is left untouched.
-
-    Parameters
-    ----------
-    path : str or PathLike
-        The final file. Its folder must exist.
-
-    Yields
-    ------
-    Path
-        Where to write.
-    """
-    path = Path(path)
-    if not path.parent.is_dir():
-        raise FileFormatError(path, f"cannot write: folder {path.parent} does not exist")
-    tmp = path.with_name(f".{path.stem}.{uuid.uuid4().hex[:12]}.tmp{path.suffix}")
-    try:
-        yield tmp
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 @dataclass(frozen=True)

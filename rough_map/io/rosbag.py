@@ -30,9 +30,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from rough_map._files import PathLike
 from rough_map.config import SCHEMA_VERSION, FrameSpec, ImuAttitude, Pose, TraverseSpec
 from rough_map.errors import FileFormatError, InputError
-from rough_map.io.pointcloud import PathLike, write_cloud
+from rough_map.io.pointcloud import write_cloud
 from rough_map.io.traverse import TRAVERSE_FILES, Traverse, save_traverse
 
 if TYPE_CHECKING:

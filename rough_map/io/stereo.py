@@ -88,7 +88,6 @@ Conventions
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 from dataclasses import dataclass
@@ -96,10 +95,9 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from rough_map.config import check_principal_point, check_rigid_transform
+from rough_map.config import StereoCalibration
 from rough_map.errors import FileFormatError, InputError
 
 log = logging.getLogger(__name__)
@@ -117,125 +115,6 @@ _SGBM_MODES = {"SGBM": 0, "HH": 1, "SGBM_3WAY": 2, "HH4": 3}
 # --------------------------------------------------------------------------------------------
 # Calibration and configuration
 # --------------------------------------------------------------------------------------------
-
-
-def _rotation_y(angle: float) -> np.ndarray:
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
-#: Rotation from an OpenCV camera looking straight ahead to the vehicle frame (columns are the
-#: camera axes x right, y down, z forward in vehicle coordinates).
-_CAMERA_AXES_IN_VEHICLE = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-
-
-class StereoCalibration(BaseModel):
-    """Intrinsics and extrinsics of a rectified stereo rig.
-
-    Attributes
-    ----------
-    fx, fy : float
-        Focal lengths in px.
-    cx, cy : float
-        Principal point in px (pixel centres at integer coordinates).
-    width, height : int
-        Image size in px.
-    baseline : float
-        Distance between the optical centres in m; the right camera is at ``+baseline``
-        along the left camera's x axis.
-    camera_to_vehicle : list of list of float
-        4x4 homogeneous transform, row-major, taking left-camera coordinates (OpenCV, m) to
-        vehicle coordinates (x forward, y left, z up, m).
-    """
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    fx: float = Field(gt=0)
-    fy: float = Field(gt=0)
-    cx: float
-    cy: float
-    width: int = Field(gt=0)
-    height: int = Field(gt=0)
-    baseline: float = Field(gt=0)
-    camera_to_vehicle: list[list[float]]
-
-    @field_validator("camera_to_vehicle")
-    @classmethod
-    def _check_transform(cls, value: list[list[float]]) -> list[list[float]]:
-        return check_rigid_transform(value)
-
-    @model_validator(mode="after")
-    def _check_principal_point(self) -> StereoCalibration:
-        check_principal_point(self)
-        return self
-
-    @property
-    def K(self) -> np.ndarray:
-        """3x3 camera matrix in px."""
-        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
-
-    @property
-    def T_vehicle_camera(self) -> np.ndarray:
-        """4x4 transform left camera -> vehicle as an array (m)."""
-        return np.asarray(self.camera_to_vehicle, dtype=float)
-
-    @property
-    def focal_baseline(self) -> float:
-        """``fx * baseline`` in px m: depth ``Z = focal_baseline / d``."""
-        return self.fx * self.baseline
-
-    @classmethod
-    def from_file(cls, path: str | Path) -> StereoCalibration:
-        """Read a calibration from YAML (``.yaml``/``.yml``) or JSON (``.json``).
-
-        Raises
-        ------
-        FileFormatError
-            The file cannot be read or parsed.
-        SchemaError
-            A field is missing, unknown or invalid.
-        """
-        from rough_map.config import load_model
-
-        return load_model(path, cls)
-
-    def to_file(self, path: str | Path) -> None:
-        """Write the calibration as YAML (or JSON if ``path`` ends in ``.json``)."""
-        path = Path(path)
-        data = self.model_dump()
-        text = (
-            json.dumps(data, indent=2)
-            if path.suffix.lower() == ".json"
-            else yaml.safe_dump(data, sort_keys=False)
-        )
-        path.write_text(text, encoding="utf-8")
-
-    @classmethod
-    def xb3_default(cls) -> StereoCalibration:
-        """An XB3-like rig (wide pair, 3.8 mm lenses) as mounted for the paper's patch.
-
-        1280x960 px, ``fx = fy = 985`` px (66 deg horizontal field of view), baseline 0.24 m.
-        The left camera is 1.00 m above the ground, 0.20 m behind the vehicle origin and
-        0.12 m to the left of the centre line (the rig is centred), pitched down 42 deg. The
-        flat 0.896 m patch centred 1 m ahead projects to columns 376-1095 and rows 292-672 of
-        the left image (>= 184 px clear of the right image's left edge), disparities 125-193
-        px (depth 1.23-1.89 m). Widened by 5 cm and +-0.15 m in height (the patch path's
-        search volume) it still fits: columns 298-1198, rows 208-773, disparities 116-217.
-        """
-        rotation = _rotation_y(math.radians(42.0)) @ _CAMERA_AXES_IN_VEHICLE
-        transform = np.eye(4)
-        transform[:3, :3] = rotation
-        transform[:3, 3] = [-0.20, 0.12, 1.00]
-        return cls(
-            fx=985.0,
-            fy=985.0,
-            cx=639.5,
-            cy=479.5,
-            width=1280,
-            height=960,
-            baseline=0.24,
-            camera_to_vehicle=transform.tolist(),
-        )
 
 
 class SGBMConfig(BaseModel):

@@ -19,9 +19,11 @@ from typing import Literal
 
 import numpy as np
 
+from rough_map._files import PathLike, atomic_output
 from rough_map.config import FrameSpec, TraverseSpec, load_model
 from rough_map.errors import FileFormatError, SchemaError
-from rough_map.io.pointcloud import PathLike, atomic_output, read_cloud
+from rough_map.geometry import pose_matrix
+from rough_map.io.pointcloud import read_cloud
 
 log = logging.getLogger(__name__)
 
@@ -86,7 +88,7 @@ class Traverse:
 
     def pose_matrix(self, index: int) -> np.ndarray:
         """4x4 transform vehicle -> world of frame ``index`` (m)."""
-        return self._frame(index).pose.matrix()
+        return pose_matrix(self._frame(index).pose)
 
     def cloud_path(self, index: int) -> Path:
         """Path of the point cloud of frame ``index``.

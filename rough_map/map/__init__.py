@@ -23,7 +23,6 @@ from rough_map.map.grid import (
     GridMap,
     GridMapData,
     LayerInfo,
-    MapCrs,
     from_grid_map,
     to_grid_map,
 )
@@ -36,7 +35,6 @@ __all__ = [
     "GridMap",
     "GridMapData",
     "LayerInfo",
-    "MapCrs",
     "apply_levels",
     "from_grid_map",
     "fuse_cell_probabilities",

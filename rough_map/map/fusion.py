@@ -52,8 +52,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from rough_map.errors import InputError
-from rough_map.map.grid import DEFAULT_MARGIN, GridGeometry, GridMap, MapCrs
+from rough_map.config import Crs
+from rough_map.errors import EmptyMapWarning, InputError
+from rough_map.map.grid import DEFAULT_MARGIN, GridGeometry, GridMap
 from rough_map.patch import PatchSpec
 
 log = logging.getLogger(__name__)
@@ -97,10 +98,6 @@ _NEAR_LAYERS: dict[str, tuple[str, str, float, str]] = {
     "sum_w2": ("1", "sum of w^2", 0.0, "internal"),
     "sum_var_w": ("1", "sum of sigma_w^2", 0.0, "internal"),
 }
-
-
-class EmptyMapWarning(UserWarning):
-    """A traverse gave no valid patch: the map is all nodata."""
 
 
 # ------------------------------------------------------------------------------------------
@@ -631,7 +628,7 @@ def fuse_traverse(
         Patch geometry of the features (default: 0.896 m square, 1 m ahead).
     crs : optional
         CRS of the world frame: a traverse's ``spec.crs``, ``"EPSG:32633"``, a
-        :class:`~rough_map.map.grid.MapCrs`... (default: local, no geodetic origin).
+        :class:`~rough_map.config.Crs`... (default: local, no geodetic origin).
     level_names : sequence of str
         Level names, smoothest first.
     prior : float
@@ -676,7 +673,7 @@ def fuse_traverse(
     else:
         bounds = (0.0, 0.0, 0.0, 0.0)
     geometry = GridGeometry.covering(
-        bounds, resolution, margin=margin, crs=MapCrs.from_any(crs), frame_id=frame_id
+        bounds, resolution, margin=margin, crs=Crs.from_any(crs), frame_id=frame_id
     )
     grid = GridMap(
         geometry,

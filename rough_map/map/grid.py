@@ -4,7 +4,7 @@ Conventions
 -----------
 * **World frame**: x east (or local x), y north (or local y), metres, as everywhere in
   rough_map (:mod:`rough_map.types`). The CRS of the map says what "world" means
-  (:class:`MapCrs`).
+  (:class:`rough_map.config.Crs`).
 * **Geometry**: ``resolution`` is the side of a square cell in m. ``origin`` is the world
   (x, y) in m of the *south-west corner* of the map, i.e. the lower-left corner of cell
   ``[0, 0]``. ``shape`` is ``(n_rows, n_cols)``. Maps built by rough_map keep ``origin`` on
@@ -41,6 +41,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from rough_map.config import Crs
 from rough_map.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -50,7 +51,6 @@ __all__ = [
     "GridMap",
     "GridMapData",
     "LayerInfo",
-    "MapCrs",
     "from_grid_map",
     "to_grid_map",
 ]
@@ -59,80 +59,6 @@ __all__ = [
 DEFAULT_MARGIN = 2.0
 
 LayerKind = Literal["value", "class", "internal"]
-
-
-@dataclass(frozen=True)
-class MapCrs:
-    """The coordinate reference system of a map's world frame.
-
-    Attributes
-    ----------
-    code : str
-        ``"local"`` for a local metric frame (x east, y north), or ``"EPSG:<n>"`` for a
-        projected CRS whose units are metres.
-    origin : tuple of float, optional
-        ``(lat, lon, alt)`` in degrees, degrees and m (WGS84) of the origin of a local
-        frame. Only with ``code="local"``.
-    """
-
-    code: str = "local"
-    origin: tuple[float, float, float] | None = None
-
-    def __post_init__(self) -> None:
-        code = self.code.strip()
-        if code.lower() == "local":
-            object.__setattr__(self, "code", "local")
-        elif code.upper().startswith("EPSG:") and code[5:].strip().isdigit():
-            object.__setattr__(self, "code", f"EPSG:{int(code[5:])}")
-        else:
-            raise InputError(f"crs code must be 'local' or 'EPSG:<n>', got {self.code!r}")
-        if self.origin is not None:
-            if self.code != "local":
-                raise InputError("a geodetic origin is only meaningful with crs 'local'")
-            lat, lon, alt = (float(v) for v in self.origin)
-            if not (-90 <= lat <= 90 and -180 <= lon <= 180 and math.isfinite(alt)):
-                raise InputError(
-                    f"origin must be (lat, lon, alt) in deg, deg, m; got {self.origin}"
-                )
-            object.__setattr__(self, "origin", (lat, lon, alt))
-
-    @classmethod
-    def from_any(cls, value: Any) -> MapCrs:
-        """A :class:`MapCrs` from None (local), ``"local"``, ``"EPSG:32633"``, ``32633``,
-        another :class:`MapCrs`, or a traverse's :class:`rough_map.config.Crs`."""
-        if value is None:
-            return cls()
-        if isinstance(value, MapCrs):
-            return value
-        if isinstance(value, int | np.integer):
-            return cls(f"EPSG:{int(value)}")
-        if isinstance(value, str):
-            return cls(value)
-        code = getattr(value, "code", None)
-        if isinstance(code, str):
-            o = getattr(value, "origin", None)
-            origin = None if o is None else (float(o.lat), float(o.lon), float(o.alt))
-            return cls(code, origin)
-        raise InputError(f"cannot read a CRS from {value!r}")
-
-    @property
-    def epsg(self) -> int | None:
-        """The EPSG code, or None for a local frame."""
-        return None if self.code == "local" else int(self.code.split(":")[1])
-
-    def proj_string(self) -> str | None:
-        """A CRS definition for GIS tools: ``"EPSG:<n>"``; for a local frame with a geodetic
-        origin a transverse Mercator centred on it (x east, y north, m, scale 1 at the
-        origin); None for a local frame without origin (an engineering CRS)."""
-        if self.epsg is not None:
-            return self.code
-        if self.origin is None:
-            return None
-        lat, lon, _ = self.origin
-        return (
-            f"+proj=tmerc +lat_0={lat:.10f} +lon_0={lon:.10f} +k=1 +x_0=0 +y_0=0 "
-            "+ellps=WGS84 +units=m +no_defs"
-        )
 
 
 @dataclass(frozen=True)
@@ -148,7 +74,7 @@ class GridGeometry:
         ``[0, 0]``).
     shape : tuple of int
         ``(n_rows, n_cols)``: rows along +y (north), columns along +x (east).
-    crs : MapCrs
+    crs : Crs
         What the world frame is.
     frame_id : str
         Name of the world frame for ROS (``header.frame_id`` of a grid_map message).
@@ -157,7 +83,7 @@ class GridGeometry:
     resolution: float
     origin: tuple[float, float] = (0.0, 0.0)
     shape: tuple[int, int] = (1, 1)
-    crs: MapCrs = field(default_factory=MapCrs)
+    crs: Crs = field(default_factory=lambda: Crs(code="local"))
     frame_id: str = "map"
 
     def __post_init__(self) -> None:
@@ -173,7 +99,7 @@ class GridGeometry:
         if rows < 0 or cols < 0:
             raise InputError(f"shape must be (n_rows, n_cols) >= 0, got {self.shape!r}")
         object.__setattr__(self, "shape", (rows, cols))
-        object.__setattr__(self, "crs", MapCrs.from_any(self.crs))
+        object.__setattr__(self, "crs", Crs.from_any(self.crs))
 
     @classmethod
     def covering(
@@ -380,7 +306,7 @@ class GridMap:
         return self._geometry.resolution
 
     @property
-    def crs(self) -> MapCrs:
+    def crs(self) -> Crs:
         """CRS of the world frame."""
         return self._geometry.crs
 
@@ -634,7 +560,7 @@ def from_grid_map(
     data : GridMapData
         The map; every layer of shape ``size``.
     crs : optional
-        CRS of the frame (anything :meth:`MapCrs.from_any` reads).
+        CRS of the frame (anything :meth:`Crs.from_any` reads).
     info : mapping of str to LayerInfo, optional
         Units and descriptions of the layers (default: unknown units ``""``).
     """
@@ -645,7 +571,7 @@ def from_grid_map(
             f"length {data.length} m is not a whole number of {data.resolution} m cells"
         )
     origin = (data.position[0] - lx / 2, data.position[1] - ly / 2)
-    geometry = GridGeometry(data.resolution, origin, (ny, nx), MapCrs.from_any(crs), data.frame_id)
+    geometry = GridGeometry(data.resolution, origin, (ny, nx), Crs.from_any(crs), data.frame_id)
     grid = GridMap(geometry)
     info = info or {}
     for name, matrix in data.layers.items():

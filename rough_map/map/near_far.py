@@ -76,6 +76,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from rough_map.errors import FileFormatError, InputError, NotFittedError
+from rough_map.geometry import ground_to_pixel, pixel_to_ground, pose_matrix
 
 if TYPE_CHECKING:
     from typing import TypeAlias
@@ -101,9 +102,6 @@ __all__ = [
     "NearToFar",
     "area_coverage",
     "far_field_accuracy",
-    "ground_to_pixel",
-    "pixel_to_ground",
-    "pose_matrix",
     "run_traverse",
     "tile_features",
 ]
@@ -132,113 +130,6 @@ DEFAULT_BINS = (1.5, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0)
 # --------------------------------------------------------------------------------------------
 # Geometry
 # --------------------------------------------------------------------------------------------
-
-
-def pose_matrix(pose: Pose | ArrayLike) -> NDArray[np.float64]:
-    """4x4 vehicle -> world transform of a pose.
-
-    Parameters
-    ----------
-    pose : Pose, array_like of 6 float or array_like (4, 4)
-        A :class:`rough_map.config.Pose`, ``(x, y, z, roll, pitch, yaw)`` in m and rad with
-        ``R = Rz(yaw) Ry(pitch) Rx(roll)``, or the 4x4 homogeneous matrix itself.
-
-    Returns
-    -------
-    ndarray, shape (4, 4)
-        Rotation and translation (m) taking vehicle coordinates to world coordinates.
-
-    Raises
-    ------
-    InputError
-        Not a pose of one of these forms, or not finite.
-    """
-    from rough_map.patch import rotation_matrix
-
-    matrix = getattr(pose, "matrix", None)
-    if callable(matrix):
-        return np.asarray(matrix(), dtype=float)
-    try:
-        arr = np.asarray(pose, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError(
-            "pose must be a Pose, (x, y, z, roll, pitch, yaw) in m and rad, or a 4x4 matrix"
-        ) from None
-    if not np.all(np.isfinite(arr)):
-        raise InputError("pose has non-finite values")
-    if arr.shape == (4, 4):
-        return arr
-    if arr.shape != (6,):
-        raise InputError(
-            "pose must be a Pose, (x, y, z, roll, pitch, yaw) in m and rad or a 4x4 matrix, "
-            f"got shape {arr.shape}"
-        )
-    out = np.eye(4)
-    out[:3, :3] = rotation_matrix(roll=arr[3], pitch=arr[4], yaw=arr[5])
-    out[:3, 3] = arr[:3]
-    return out
-
-
-def pixel_to_ground(
-    calib: StereoCalibration, u: ArrayLike, v: ArrayLike, ground_z: float = 0.0
-) -> NDArray[np.float64]:
-    """Where the left-camera rays through pixels meet the plane ``z = ground_z``.
-
-    Parameters
-    ----------
-    calib : StereoCalibration
-        The rig (pinhole ``K`` and the left camera's pose in the vehicle frame).
-    u, v : array_like
-        Pixel column and row, px (broadcast together; integers are pixel centres).
-    ground_z : float
-        Height of the ground plane in the vehicle frame, m.
-
-    Returns
-    -------
-    ndarray, shape (..., 3)
-        Vehicle-frame points ``(x, y, z)`` in m; NaN for rays that do not go down to the
-        plane (at or above the horizon, or a camera below the plane).
-    """
-    u, v = np.broadcast_arrays(np.asarray(u, dtype=float), np.asarray(v, dtype=float))
-    transform = _camera_to_vehicle(calib)
-    rays = np.stack([(u - calib.cx) / calib.fx, (v - calib.cy) / calib.fy, np.ones_like(u)], -1)
-    dirs = rays @ transform[:3, :3].T
-    origin = transform[:3, 3]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = (ground_z - origin[2]) / dirs[..., 2]
-    s = np.where(s > 0, s, np.nan)
-    return origin + s[..., None] * dirs
-
-
-def ground_to_pixel(
-    calib: StereoCalibration, points: ArrayLike
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Project vehicle-frame points into the left image.
-
-    Parameters
-    ----------
-    calib : StereoCalibration
-        The rig.
-    points : array_like, shape (..., 3)
-        Vehicle-frame ``(x, y, z)``, m.
-
-    Returns
-    -------
-    u, v : ndarray, shape (...)
-        Pixel column and row, px; NaN for points behind or within 1 cm of the camera plane.
-        Points may project outside the image.
-    """
-    p = np.asarray(points, dtype=float)
-    if p.shape[-1:] != (3,):
-        raise InputError(f"points must have shape (..., 3) (x, y, z in m), got {p.shape}")
-    transform = _camera_to_vehicle(calib)
-    cam = (p - transform[:3, 3]) @ transform[:3, :3]  # R^T (p - t), row-wise
-    z = np.where(cam[..., 2] > 0.01, cam[..., 2], np.nan)
-    return calib.fx * cam[..., 0] / z + calib.cx, calib.fy * cam[..., 1] / z + calib.cy
-
-
-def _camera_to_vehicle(calib: StereoCalibration) -> NDArray[np.float64]:
-    return np.asarray(calib.camera_to_vehicle, dtype=float)
 
 
 @dataclass(frozen=True)

@@ -118,7 +118,7 @@ def _write_npz(path: Path, members: dict[str, tuple[np.ndarray, bool]]) -> None:
     """An .npz archive (atomic) with each member deflated or stored as asked."""
     import zipfile
 
-    from rough_map.io.pointcloud import atomic_output
+    from rough_map._files import atomic_output
 
     with atomic_output(path) as tmp, zipfile.ZipFile(tmp, "w", allowZip64=True) as zf:
         for name, (array, deflate) in members.items():
@@ -175,7 +175,7 @@ def save_cloud_npz(path: str | Path, points: np.ndarray) -> Path:
     Path
         The file written.
     """
-    from rough_map.io.pointcloud import atomic_output
+    from rough_map._files import atomic_output
 
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0 or pts.dtype.kind not in "fiu":
@@ -212,7 +212,7 @@ def sense_cloud(
     ``(sensor.ahead, 0)`` in the vehicle frame are returned. The crop comes after every
     random draw, so the same ``rng`` gives the same points as an uncropped sensor.
     """
-    from rough_map.patch import rotation_matrix
+    from rough_map.geometry import rotation_matrix
 
     x, y, z, roll, pitch, yaw = pose
     side = 2 * sensor.half_extent
@@ -291,8 +291,8 @@ def simulate(
     import cv2
     from tqdm import tqdm
 
+    from rough_map._files import atomic_output
     from rough_map.config import TraverseSpec
-    from rough_map.io.pointcloud import atomic_output
     from rough_map.io.traverse import find_traverse_file, save_traverse
 
     if course not in COURSES:
@@ -330,7 +330,7 @@ def simulate(
     )
     calib = None
     if images:
-        from rough_map.io.stereo import StereoCalibration
+        from rough_map.config import StereoCalibration
         from rough_map.simulate.render import render_stereo
         from rough_map.simulate.textures import TextureSet
 

@@ -25,10 +25,9 @@ from collections.abc import Sequence
 import numpy as np
 from scipy import ndimage
 
-from rough_map.config import Pose
+from rough_map.config import Pose, StereoCalibration
 from rough_map.errors import InputError
-from rough_map.io.stereo import StereoCalibration
-from rough_map.patch import rotation_matrix
+from rough_map.geometry import pose_matrix
 from rough_map.simulate.textures import TextureSet
 from rough_map.types import HeightField
 
@@ -45,24 +44,6 @@ EXPOSURE = 255.0
 SKY = 0.85
 #: Largest horizontal distance from the vehicle of the ground rendered by default, m.
 MAX_RANGE = 6.0
-
-
-def _pose_matrix(pose: Pose | Sequence[float] | np.ndarray) -> np.ndarray:
-    """4x4 vehicle -> world transform of a pose (see :func:`render_stereo`)."""
-    if isinstance(pose, Pose):
-        return pose.matrix()
-    arr = np.asarray(pose, dtype=float)
-    if arr.shape == (4, 4):
-        return arr
-    if arr.shape != (6,):
-        raise InputError(
-            f"pose must be a Pose, (x, y, z, roll, pitch, yaw) in m and rad or a 4x4 matrix, "
-            f"got shape {arr.shape}"
-        )
-    out = np.eye(4)
-    out[:3, :3] = rotation_matrix(roll=arr[3], pitch=arr[4], yaw=arr[5])
-    out[:3, 3] = arr[:3]
-    return out
 
 
 def _default_region(calib: StereoCalibration) -> tuple[float, float, float, float]:
@@ -240,7 +221,7 @@ def render_stereo(
     r0, r1 = (0, calib.height) if rows is None else (int(rows[0]), int(rows[1]))
     if not 0 <= r0 < r1 <= calib.height:
         raise InputError(f"rows must satisfy 0 <= r0 < r1 <= {calib.height}, got {rows}")
-    world_vehicle = _pose_matrix(pose)
+    world_vehicle = pose_matrix(pose)
     world_left = world_vehicle @ calib.T_vehicle_camera
     right_in_left = np.eye(4)
     right_in_left[0, 3] = calib.baseline
