@@ -32,7 +32,8 @@ import time
 import cv2
 import numpy as np
 
-from rough_map.io.stereo import (
+from rough_map.simulate.render import render_stereo
+from rough_map.stereo import (
     SGBMConfig,
     StereoCalibration,
     StereoConfig,
@@ -44,7 +45,6 @@ from rough_map.io.stereo import (
     patch_window,
     stereo_to_cloud,
 )
-from rough_map.simulate.render import render_stereo
 from rough_map.types import HeightField
 
 

@@ -1,6 +1,6 @@
 """The whole chain on one traverse: features -> classes -> filter -> map (+ near-to-far).
 
-This module only composes the stages (:mod:`rough_map.pipeline`, :mod:`rough_map.classify`,
+This module only composes the stages (:mod:`rough_map.features`, :mod:`rough_map.classify`,
 :mod:`rough_map.map`, :mod:`rough_map.export`); the commands ``map``, ``report`` and
 ``demo`` call it.
 """
@@ -90,11 +90,11 @@ def analyse(
     progress : bool
         Progress bars on stderr.
     """
+    from rough_map.features import traverse_features
     from rough_map.io.model import load_terrain_model
     from rough_map.io.traverse import Traverse, load_traverse
     from rough_map.map import fuse_traverse
     from rough_map.patch import Extraction
-    from rough_map.pipeline import traverse_features
 
     if not isinstance(traverse, Traverse):
         traverse = load_traverse(traverse)
@@ -297,7 +297,7 @@ def write_tables(result: TraverseAnalysis, out_dir: str | Path) -> dict[str, Pat
     import csv
 
     from rough_map._files import atomic_output
-    from rough_map.pipeline import features_metadata_path, write_features
+    from rough_map.features import features_metadata_path, write_features
 
     out = Path(out_dir)
     features = write_features(result.features, out / "features.csv")

@@ -26,9 +26,9 @@ from rough_map.classify import (
     load_roughness_levels,
     make_classifier,
     roughness_level,
-    scores,
 )
-from rough_map.pipeline import COLUMNS, FeatureTable
+from rough_map.evaluation.metrics import scores
+from rough_map.features import COLUMNS, FeatureTable
 
 ROOT = Path(__file__).resolve().parents[1]
 OMEGA = default_omega(56)  # the paper's patch: 0.896 m at 8 mm, rad/m

@@ -20,13 +20,13 @@ import pytest
 from rough_map.cli._common import emit_json, mentions_default
 from rough_map.cli.main import build_parser, main
 from rough_map.errors import FileFormatError, InputError
-from rough_map.io.traverse import load_traverse
-from rough_map.pipeline import (
+from rough_map.features import (
     features_metadata_path,
     read_features,
     traverse_features,
     write_features,
 )
+from rough_map.io.traverse import load_traverse
 from rough_map.simulate.course import SensorSpec, simulate
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -18,8 +18,8 @@ from sklearn.metrics import accuracy_score, confusion_matrix, f1_score
 
 from rough_map.cli.main import main
 from rough_map.config import TraverseSpec
+from rough_map.features import read_features, traverse_features, write_features
 from rough_map.io.traverse import save_traverse
-from rough_map.pipeline import read_features, traverse_features, write_features
 from rough_map.simulate.course import SensorSpec, sense_cloud
 from rough_map.simulate.world import Segment, build_world, drive
 
@@ -189,7 +189,7 @@ def test_macro_f1_averages_the_true_classes_only() -> None:
     b: TP 1, FP 0, FN 1: P = 1, R = 1/2, F1 = 2/3.  c: F1 0, not averaged.
     Macro-F1 over the true classes a, b: 2/3 (over a, b, c it would be 4/9).
     """
-    from rough_map.classify import scores
+    from rough_map.evaluation.metrics import scores
 
     s = scores(["a", "a", "a", "b", "b"], ["a", "a", "c", "b", "a"])
     assert s["scored_classes"] == ["a", "b"] and s["classes"] == ["a", "b", "c"]

@@ -25,6 +25,7 @@ from rough_map.export.png import (
     scale_bar_length,
     write_pngs,
 )
+from rough_map.features import FeatureTable
 from rough_map.map import (
     EmptyMapWarning,
     from_grid_map,
@@ -32,7 +33,6 @@ from rough_map.map import (
     fuse_traverse,
 )
 from rough_map.patch import PatchSpec
-from rough_map.pipeline import FeatureTable
 
 NAMES = ("concrete", "dirt_road", "gravel")
 E0, N0 = 500_123.4, 4_470_321.7  # UTM-sized coordinates: the transform must keep them

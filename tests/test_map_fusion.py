@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from rough_map.errors import InputError
+from rough_map.features import FeatureTable
 from rough_map.map import (
     EmptyMapWarning,
     GridGeometry,
@@ -20,7 +21,6 @@ from rough_map.map import (
     patch_corners,
 )
 from rough_map.patch import PatchSpec
-from rough_map.pipeline import FeatureTable
 
 NAMES = ("concrete", "dirt_road", "gravel")
 
@@ -333,7 +333,7 @@ def test_bad_traverse_inputs():
 
 @pytest.fixture(scope="module")
 def simulated(tmp_path_factory):
-    from rough_map.pipeline import traverse_features
+    from rough_map.features import traverse_features
     from rough_map.simulate.course import SensorSpec, load_world, simulate
 
     out = tmp_path_factory.mktemp("sim") / "mixed"

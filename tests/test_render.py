@@ -24,16 +24,16 @@ import pytest
 from rough_map import terrain
 from rough_map.config import Pose
 from rough_map.errors import InputError
-from rough_map.io.stereo import (
+from rough_map.patch import DEFAULT_SPACING, grid_points
+from rough_map.psd import patch_roughness
+from rough_map.simulate.render import render_stereo
+from rough_map.simulate.textures import DEFAULT_TEXTURES, TextureSet, value_noise
+from rough_map.stereo import (
     StereoCalibration,
     compute_disparity,
     patch_window,
     stereo_to_cloud,
 )
-from rough_map.patch import DEFAULT_SPACING, grid_points
-from rough_map.psd import patch_roughness
-from rough_map.simulate.render import render_stereo
-from rough_map.simulate.textures import DEFAULT_TEXTURES, TextureSet, value_noise
 from rough_map.types import HeightField
 
 CLASSES = tuple(DEFAULT_TEXTURES)

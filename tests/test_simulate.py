@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from rough_map.cli.main import main
+from rough_map.features import read_features, traverse_features, write_features
 from rough_map.io.traverse import load_traverse
-from rough_map.pipeline import read_features, traverse_features, write_features
 from rough_map.simulate.course import SensorSpec, load_world, sense_cloud, simulate
 from rough_map.simulate.world import build_world, course_layout, drive
 
@@ -228,8 +228,8 @@ def test_clouds_keep_the_square_around_the_patch_and_the_same_points():
     """The crop comes after every random draw: the points kept are those the whole
     footprint had, bit for bit, the random stream goes on as before, and the patch sees
     the same points."""
+    from rough_map.features import frame_features
     from rough_map.patch import PatchSpec
-    from rough_map.pipeline import frame_features
 
     segs, defects = course_layout("compact", 4.0)
     world = build_world(segs, defects, seed=2, width=1.5)

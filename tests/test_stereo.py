@@ -15,7 +15,8 @@ from rough_map import patch
 from rough_map.cli.main import main
 from rough_map.errors import FileFormatError, InputError, SchemaError
 from rough_map.geometry import rotation_matrix
-from rough_map.io.stereo import (
+from rough_map.simulate.textures import DEFAULT_TEXTURES, value_noise
+from rough_map.stereo import (
     PATCH_AHEAD,
     PATCH_SIZE,
     SGBMConfig,
@@ -37,7 +38,6 @@ from rough_map.io.stereo import (
     stereo_to_cloud,
     to_vehicle,
 )
-from rough_map.simulate.textures import DEFAULT_TEXTURES, value_noise
 
 CONFIGS = Path(__file__).parents[1] / "configs"
 
@@ -535,7 +535,7 @@ def surface_features(request, calib):
     """Features (frame_features) of the stereo cloud and of the dense true surface, for one
     simulator surface (terrain.generate, seed 0) rendered from a level vehicle."""
     from rough_map import terrain
-    from rough_map.pipeline import frame_features
+    from rough_map.features import frame_features
     from rough_map.simulate.render import render_stereo
     from rough_map.types import HeightField
 
@@ -572,7 +572,7 @@ def test_stereo_features_stay_near_the_truth(surface_features):
 @pytest.mark.xfail(
     strict=False,
     reason="not met yet, before or after the coarse pass: the stereo error is as large as "
-    "the terrain's PSD at 120-393 rad/m (see the Limits of rough_map.io.stereo)",
+    "the terrain's PSD at 120-393 rad/m (see the Limits of rough_map.stereo)",
 )
 def test_stereo_features_agree_with_the_true_surface(surface_features):
     """The issue's acceptance: features from stereo-reconstructed clouds agree with features

@@ -12,7 +12,7 @@ from rough_map.cli._common import emit_json, patch_spec, status, table
 
 def run_traverse(args: argparse.Namespace) -> int:
     from rough_map.errors import InputError
-    from rough_map.pipeline import features_metadata_path, traverse_features, write_features
+    from rough_map.features import features_metadata_path, traverse_features, write_features
 
     if args.out is None:
         raise InputError("a traverse needs --out FILE (.csv, or .parquet with pyarrow)")

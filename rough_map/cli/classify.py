@@ -76,8 +76,8 @@ def _fmt(value: object) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from rough_map._files import atomic_output
-    from rough_map.classify import feature_tables
     from rough_map.errors import InputError
+    from rough_map.features import feature_tables
     from rough_map.io.model import load_terrain_model
 
     if args.out.suffix.lower() != ".csv":

@@ -295,9 +295,9 @@ def _stereo_check(trav) -> str:
 def _stereo_rows(trav) -> tuple[list[list[str]], str]:
     """Features of the stereo clouds against those of the range clouds, per frame pair
     (rows of STEREO_HEAD), and the median stereo time."""
-    from rough_map.io.stereo import read_image, stereo_to_cloud
+    from rough_map.features import frame_features
     from rough_map.patch import PatchSpec
-    from rough_map.pipeline import frame_features
+    from rough_map.stereo import read_image, stereo_to_cloud
 
     calib = trav.spec.calibration
     spec = PatchSpec()

@@ -95,8 +95,8 @@ def _report(part: dict[str, Any], title: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rough_map.classify import feature_tables
     from rough_map.evaluation import evaluate_model
+    from rough_map.features import feature_tables
     from rough_map.io.model import load_terrain_model
 
     model = load_terrain_model(args.model)

@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
     from rough_map.config import StereoCalibration
     from rough_map.errors import PatchError
     from rough_map.io.pointcloud import write_cloud
-    from rough_map.io.stereo import StereoConfig, read_image, stereo_to_cloud
+    from rough_map.stereo import StereoConfig, read_image, stereo_to_cloud
 
     log = logging.getLogger("rough_map.cli.stereo")
     calib = StereoCalibration.from_file(args.calib)

@@ -110,9 +110,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rough_map.classify import TerrainModel, feature_tables, load_roughness_levels
+    from rough_map.classify import TerrainModel, load_roughness_levels
+    from rough_map.features import feature_tables, write_features
     from rough_map.io.model import save_terrain_model
-    from rough_map.pipeline import write_features
 
     levels = load_roughness_levels(args.levels)
     _check_labelled(args.traverses)

@@ -610,7 +610,7 @@ def fuse_traverse(
     Parameters
     ----------
     features : FeatureTable
-        Per-frame features (:func:`rough_map.pipeline.traverse_features`): columns ``t``
+        Per-frame features (:func:`rough_map.features.traverse_features`): columns ``t``
         (s), ``x``, ``y`` (m), ``yaw`` (rad), ``R``, ``sigma_R`` (m^3/rad), ``w``,
         ``sigma_w`` and ``valid``. Invalid frames are skipped.
     class_probs : array_like, shape (n_frames, K), optional

@@ -75,19 +75,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from rough_map.config import StereoCalibration
 from rough_map.errors import FileFormatError, InputError, NotFittedError
 from rough_map.geometry import ground_to_pixel, pixel_to_ground, pose_matrix
 
 if TYPE_CHECKING:
-    from typing import TypeAlias
-
-    from rough_map import config
     from rough_map.config import Pose
-    from rough_map.io import stereo
-
-    #: Either calibration model: :class:`rough_map.io.stereo.StereoCalibration` or the
-    #: traverse file's :class:`rough_map.config.StereoCalibration` (same fields).
-    StereoCalibration: TypeAlias = stereo.StereoCalibration | config.StereoCalibration
     from rough_map.io.traverse import Traverse
     from rough_map.types import HeightField
 

@@ -7,6 +7,7 @@ from typing import Any
 import numpy as np
 
 from rough_map.errors import InputError
+from rough_map.evaluation.metrics import scores
 
 
 def evaluate_model(model: Any, tables: list[Any], mode: str | None = None) -> dict[str, Any]:
@@ -14,7 +15,7 @@ def evaluate_model(model: Any, tables: list[Any], mode: str | None = None) -> di
 
     Frames without a label are skipped, and so are frames without a valid patch (they have
     no raw class); both are counted in ``frames``. Scores come from
-    :func:`rough_map.classify.scores` (sklearn.metrics), for the raw classifier output and
+    :func:`rough_map.evaluation.metrics.scores` (sklearn.metrics), for the raw classifier output and
     for the path-filtered classes.
 
     Raw and filtered results have the same ``classes``, in the same order: every class that
@@ -39,7 +40,6 @@ def evaluate_model(model: Any, tables: list[Any], mode: str | None = None) -> di
         ``confusion_matrix_normalized``, ``accuracy``, ``macro_f1``, ``scored_classes``,
         per-class scores) and ``per_traverse``.
     """
-    from rough_map.classify import scores
 
     truth, raw, filtered, per_traverse = [], [], [], []
     counts = {"total": 0, "scored": 0, "unlabelled": 0, "invalid": 0}

@@ -2,7 +2,7 @@
 
 Three layers, each usable on its own:
 
-* :func:`feature_matrix` stacks what :func:`rough_map.pipeline.traverse_features` measured
+* :func:`feature_matrix` stacks what :func:`rough_map.features.traverse_features` measured
   for every frame (the scalar columns :data:`INPUT_SCALARS` and the patch-mean log10 PSD)
   into one matrix;
 * :class:`SpectralFeatures`, a scikit-learn transformer, turns that matrix into the
@@ -73,17 +73,15 @@ __all__ = [
     "default_omega",
     "emission_log_likelihood",
     "feature_matrix",
-    "feature_tables",
     "frame_steps",
     "jitter_levels",
     "load_roughness_levels",
     "make_classifier",
     "roughness_level",
-    "scores",
     "training_hash",
 ]
 
-#: Scalar columns of a :class:`~rough_map.pipeline.FeatureTable` that lead the input matrix
+#: Scalar columns of a :class:`~rough_map.features.FeatureTable` that lead the input matrix
 #: of :class:`SpectralFeatures` (the log10 PSD bins follow), with their units.
 INPUT_SCALARS: tuple[str, ...] = (
     "R",  # m^3/rad, Phi(1 rad/m) of the longitudinal profiles
@@ -123,8 +121,8 @@ def feature_matrix(table: Any) -> tuple[NDArray[np.float64], list[str]]:
     Parameters
     ----------
     table : FeatureTable
-        Per-frame features of a traverse (:func:`rough_map.pipeline.traverse_features` or
-        :func:`rough_map.pipeline.read_features`).
+        Per-frame features of a traverse (:func:`rough_map.features.traverse_features` or
+        :func:`rough_map.features.read_features`).
 
     Returns
     -------
@@ -1506,115 +1504,3 @@ class TerrainModel:
         return defect
 
 
-def feature_tables(
-    sources: Sequence[str | Path],
-    extraction: dict[str, Any] | None = None,
-    *,
-    progress: bool = False,
-) -> list[Any]:
-    """Feature tables of traverses, computing them or reading them from files.
-
-    Parameters
-    ----------
-    sources : sequence of str or Path
-        Traverse folders or files (features are computed with ``extraction``), or features
-        tables (``.csv``/``.parquet`` written by ``rough-map features``, read as they are).
-    extraction : Extraction or dict, optional
-        The patch and estimator options (:class:`rough_map.patch.Extraction`, or its
-        ``to_dict`` form as a model records it); default the paper's.
-    progress : bool
-        Progress bars on stderr.
-
-    Returns
-    -------
-    list of FeatureTable
-    """
-    from rough_map.pipeline import read_features, traverse_features
-
-    ex = Extraction.from_dict(extraction)
-    tables = []
-    for source in sources:
-        path = Path(source)
-        if path.is_file() and path.suffix.lower() in (".csv", ".parquet"):
-            tables.append(read_features(path))
-        else:
-            tables.append(
-                traverse_features(
-                    path,
-                    ex.patch,
-                    use_imu=ex.use_imu,
-                    method=ex.method,
-                    subtract_noise=ex.subtract_noise,
-                    progress=progress,
-                )
-            )
-    return tables
-
-
-def scores(
-    y_true: ArrayLike, y_pred: ArrayLike, classes: Sequence[str] | None = None
-) -> dict[str, Any]:
-    """Confusion matrix and per-class and overall scores, from :mod:`sklearn.metrics`.
-
-    The classes are ``classes`` if given (they must hold every true and predicted class),
-    else those in ``y_true`` or ``y_pred`` (sorted), as scikit-learn's defaults take them,
-    so every number equals the corresponding ``sklearn.metrics`` call on the same labels.
-    The macro-F1 averages the F1 over the classes present in ``y_true`` only
-    (``scored_classes``): a class predicted but never true is not averaged in.
-
-    Parameters
-    ----------
-    y_true, y_pred : array_like of str, shape (n,)
-        True and predicted class per scored frame.
-    classes : sequence of str, optional
-        Rows and columns of the confusion matrix, in this order (e.g. the same for raw and
-        filtered predictions).
-
-    Returns
-    -------
-    dict
-        ``classes``; ``confusion_matrix`` (counts, rows true, columns predicted);
-        ``confusion_matrix_normalized`` (rows divided by their sum, the recall on the
-        diagonal; a class never true has a row of zeros); ``precision``, ``recall``,
-        ``f1`` and ``support`` per class (dicts); ``accuracy``; ``macro_f1``;
-        ``scored_classes`` (the true classes the macro-F1 averages); ``frames``.
-    """
-    from sklearn.metrics import (
-        accuracy_score,
-        confusion_matrix,
-        f1_score,
-        precision_recall_fscore_support,
-    )
-    from sklearn.utils.multiclass import unique_labels
-
-    t = np.asarray(y_true).astype(str)
-    p = np.asarray(y_pred).astype(str)
-    if len(t) == 0:
-        raise errors.InputError("no frames to score")
-    present = unique_labels(t)
-    if classes is None:
-        classes = unique_labels(t, p)
-    else:
-        given = [str(c) for c in classes]
-        missing = sorted({str(c) for c in unique_labels(t, p)} - set(given))
-        if missing:
-            raise errors.InputError(f"classes {given} lack the scored classes {missing}")
-        classes = np.asarray(given)
-    cm = confusion_matrix(t, p, labels=classes)
-    rows = cm.sum(axis=1, keepdims=True)
-    norm = np.divide(cm, rows, out=np.zeros(cm.shape), where=rows > 0)
-    prec, rec, f1, sup = precision_recall_fscore_support(t, p, labels=classes, zero_division=0)
-    names = [str(c) for c in classes]
-    return {
-        "classes": names,
-        "confusion_matrix": cm.tolist(),
-        "confusion_matrix_normalized": norm.tolist(),
-        "precision": dict(zip(names, map(float, prec), strict=True)),
-        "recall": dict(zip(names, map(float, rec), strict=True)),
-        "f1": dict(zip(names, map(float, f1), strict=True)),
-        "support": dict(zip(names, map(int, sup), strict=True)),
-        "accuracy": float(accuracy_score(t, p)),
-        "macro_f1": float(f1_score(t, p, labels=present, average="macro", zero_division=0)),
-        "scored_classes": [str(c) for c in present],
-        "frames": int(len(t)),
-    }

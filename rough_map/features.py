@@ -21,13 +21,15 @@ import csv
 import json
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from rough_map.errors import FileFormatError, InputError, RoughMapError
-from rough_map.patch import PatchSpec, grid_points
+from rough_map.patch import Extraction, PatchSpec, grid_points
 from rough_map.psd import patch_roughness
 
 log = logging.getLogger(__name__)
@@ -319,7 +321,7 @@ class _StereoSource:
 
     def cloud(self, i: int) -> np.ndarray:
         """The cloud of frame ``i``'s stereo pair (vehicle frame, m), over the patch."""
-        from rough_map.io.stereo import read_image, stereo_to_cloud
+        from rough_map.stereo import read_image, stereo_to_cloud
 
         frame = self.traverse.frames[i]
         left = read_image(self.traverse.resolve(frame.left))
@@ -601,3 +603,46 @@ def _parse_metadata(text: str, where: Path, what: str) -> dict:
     ):
         raise FileFormatError(where, "must be a list of numbers (rad/m)", "omega_rad_per_m")
     return {"name": str(doc.get("name", "")), "omega": [float(o) for o in omega]}
+
+
+def feature_tables(
+    sources: Sequence[str | Path],
+    extraction: dict[str, Any] | None = None,
+    *,
+    progress: bool = False,
+) -> list[Any]:
+    """Feature tables of traverses, computing them or reading them from files.
+
+    Parameters
+    ----------
+    sources : sequence of str or Path
+        Traverse folders or files (features are computed with ``extraction``), or features
+        tables (``.csv``/``.parquet`` written by ``rough-map features``, read as they are).
+    extraction : Extraction or dict, optional
+        The patch and estimator options (:class:`rough_map.patch.Extraction`, or its
+        ``to_dict`` form as a model records it); default the paper's.
+    progress : bool
+        Progress bars on stderr.
+
+    Returns
+    -------
+    list of FeatureTable
+    """
+    ex = Extraction.from_dict(extraction)
+    tables = []
+    for source in sources:
+        path = Path(source)
+        if path.is_file() and path.suffix.lower() in (".csv", ".parquet"):
+            tables.append(read_features(path))
+        else:
+            tables.append(
+                traverse_features(
+                    path,
+                    ex.patch,
+                    use_imu=ex.use_imu,
+                    method=ex.method,
+                    subtract_noise=ex.subtract_noise,
+                    progress=progress,
+                )
+            )
+    return tables
