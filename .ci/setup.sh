@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Set up rough_map in a virtual environment, on a fresh Debian or Ubuntu machine.
 #   bash .ci/setup.sh          install rough_map into .venv (and the Debian packages it needs)
-#   bash .ci/setup.sh --dev    also the test tools (pytest, hypothesis, ruff, mypy, ...)
+#   bash .ci/setup.sh --dev    also the test tools (pytest, hypothesis, ruff, mypy, import-linter, ...)
 #
 # The environment is, in this order: ./.venv if it is already a virtual environment; the
 # virtual environment that is active (VIRTUAL_ENV), linked as ./.venv; otherwise a new ./.venv
@@ -20,37 +20,40 @@ esac
 
 say() { echo "setup: $*" >&2; }
 
-# Run a command as root: directly, through sudo, or say what to run and stop.
-as_root() {
-  if [ "$(id -u)" = "0" ]; then
-    "$@"
-  elif command -v sudo >/dev/null 2>&1 && sudo -n true 2>/dev/null; then
-    sudo "$@"
-  elif command -v sudo >/dev/null 2>&1 && [ -t 0 ]; then
-    sudo "$@"
-  else
-    say "this needs root. Run this, then the set-up again:"
-    echo "    sudo $*" >&2
+# Root is available: we are root, or sudo works without a password, or sudo can ask for one.
+can_root() {
+  [ "$(id -u)" = "0" ] && return 0
+  command -v sudo >/dev/null 2>&1 || return 1
+  sudo -n true 2>/dev/null || [ -t 0 ]
+}
+as_root() { if [ "$(id -u)" = "0" ]; then "$@"; else sudo "$@"; fi; }
+
+# Install all the missing Debian packages in one apt run, or print the one command to run.
+apt_install() {
+  [ "$#" -gt 0 ] || return 0
+  if ! can_root; then
+    say "rough_map needs the Debian package(s) $*; installing them needs root."
+    say "Run this, then the set-up again:"
+    echo "    sudo apt-get update && sudo apt-get install -y $*" >&2
     exit 1
   fi
-}
-
-apt_updated=""
-apt_install() {
   say "installing the Debian package(s) $* through apt"
-  if [ -z "$apt_updated" ]; then
-    as_root apt-get update -qq
-    apt_updated=1
-  fi
+  as_root apt-get update -qq
   as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "$@" >/dev/null
 }
 
-# open3d loads libusb-1.0 at import time; Debian ships it as libusb-1.0-0.
-if ! /sbin/ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
-  apt_install libusb-1.0-0
-fi
+need=()
+# open3d's wheel loads libusb-1.0, libGL and libEGL at import time (Debian: libusb-1.0-0,
+# libgl1, libegl1); a desktop has them, a server or container usually does not.
+# (ldconfig's output is read whole: `ldconfig -p | grep -q` can fail under pipefail when
+# grep exits first and ldconfig dies of SIGPIPE.)
+libs=$(/sbin/ldconfig -p 2>/dev/null || true)
+for lib in libusb-1.0.so.0:libusb-1.0-0 libGL.so.1:libgl1 libEGL.so.1:libegl1; do
+  case "$libs" in *[[:space:]]"${lib%%:*}"[[:space:]]*) ;; *) need+=("${lib#*:}") ;; esac
+done
 
 venv=.venv
+make_venv=""
 if [ -x .venv/bin/python ] && [ ! -L .venv ]; then
   say "using the project's virtual environment .venv"
 elif [ -n "${VIRTUAL_ENV:-}" ] && [ -x "${VIRTUAL_ENV}/bin/python" ]; then
@@ -58,20 +61,26 @@ elif [ -n "${VIRTUAL_ENV:-}" ] && [ -x "${VIRTUAL_ENV}/bin/python" ]; then
   ln -sfn "${VIRTUAL_ENV}" .venv
 else
   [ -L .venv ] && rm -f .venv
+  make_venv=1
   py=$(command -v python3 || true)
   if [ -z "$py" ]; then
-    apt_install python3 python3-venv
-    py=$(command -v python3)
+    need+=(python3 python3-venv)
+  else
+    if ! "$py" -c 'import sys; sys.exit(sys.version_info < (3, 11))'; then
+      say "rough_map needs Python >= 3.11; $py is $("$py" -c 'import sys; print(sys.version.split()[0])')"
+      exit 1
+    fi
+    # Debian and Ubuntu split venv (and its ensurepip) into python3-venv / python3.X-venv.
+    if ! "$py" -c 'import ensurepip, venv' >/dev/null 2>&1; then
+      need+=("python$("$py" -c 'import sys; print("%d.%d" % sys.version_info[:2])')-venv")
+    fi
   fi
-  if ! "$py" -c 'import sys; sys.exit(sys.version_info < (3, 11))'; then
-    say "rough_map needs Python >= 3.11; $py is $("$py" -c 'import sys; print(sys.version.split()[0])')"
-    exit 1
-  fi
-  # Debian and Ubuntu split venv (and its ensurepip) into python3-venv / python3.X-venv.
-  if ! "$py" -c 'import ensurepip, venv' >/dev/null 2>&1; then
-    ver=$("$py" -c 'import sys; print(f"{sys.version_info[0]}.{sys.version_info[1]}")')
-    apt_install "python${ver}-venv"
-  fi
+fi
+
+apt_install ${need[@]+"${need[@]}"}
+
+if [ -n "$make_venv" ]; then
+  py=$(command -v python3)
   say "making the virtual environment .venv with $py"
   "$py" -m venv .venv
 fi
@@ -80,5 +89,8 @@ say "installing rough_map${extras} and its dependencies into .venv" \
   "(about 1 GB on the first run: a few minutes; pip shows each package)"
 .venv/bin/python -m pip install --disable-pip-version-check --progress-bar off \
   -e ".${extras}" 2>&1 | { grep --line-buffered -v '^Requirement already satisfied' || true; } >&2
-.venv/bin/python -c "import open3d" 2>/dev/null || { say "open3d does not import"; exit 1; }
+if ! err=$(.venv/bin/python -c "import open3d" 2>&1); then
+  say "open3d does not import: $(printf '%s\n' "$err" | tail -n 1)"
+  exit 1
+fi
 say "rough_map is ready: .venv/bin/rough-map (or 'source .venv/bin/activate', then rough-map)"
