@@ -9,9 +9,10 @@ present on the course).
 
 For each traverse it prints
 
-* the accuracy table of :func:`rough_map.map.near_far.far_field_accuracy` (predictions made
-  with the model learnt from the earlier frames only), at ``--threshold``;
-* the ground area (0.1 m grid, cells of the world only) covered by the near-field patches,
+* the accuracy table of :func:`rough_map.evaluation.near_far.far_field_accuracy`
+  (predictions made with the model learnt from the earlier frames only), at ``--threshold``;
+* the ground area (0.1 m grid, cells of the world only) covered by the near-field patches
+  (the default extraction's patch, 0.552-1.448 m ahead),
   by near + confident far cells, and by near + every far cell in view (the ceiling the camera
   allows): the camera sees the ground from about 1.5 to 4 m ahead and the simulator's
   world is a 4 m wide strip (``--width``), which caps the ratio at about 4 when every
@@ -40,12 +41,18 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from rough_map.evaluation.near_far import area_coverage, far_field_accuracy, world_class
 from rough_map.geometry import pose_matrix
 from rough_map.io.traverse import Traverse, load_traverse
+from rough_map.io.truth import TRUTH_FILE, load_world
 from rough_map.map import near_far as nf
-from rough_map.simulate.course import TRUTH_FILE, load_world
+from rough_map.patch import Extraction
 from rough_map.simulate.world import CLASS_NAMES
 from rough_map.types import HeightField
+
+#: The near field the labels describe: the patch of a model trained with the default
+#: extraction.
+PATCH = Extraction()
 
 
 def simulate(course: str, length: float, image_every: int, seed: int, width: float) -> Path:
@@ -80,7 +87,7 @@ def noisy_labels(labels: list[str | None], share: float, seed: int) -> list[str 
 def run(traverse: Traverse, labels: list[str | None], **kwargs: object) -> tuple[list, dict]:
     """run_traverse with a timing breakdown (s per frame, medians)."""
     calib = traverse.spec.calibration
-    model = nf.NearToFar(CLASS_NAMES, **kwargs)  # type: ignore[arg-type]
+    model = nf.NearToFar(CLASS_NAMES, PATCH, **kwargs)  # type: ignore[arg-type]
     times: dict[str, list[float]] = {"read": [], "features": [], "predict": [], "update": []}
     out = []
     for i, frame in enumerate(traverse.frames):
@@ -92,12 +99,11 @@ def run(traverse: Traverse, labels: list[str | None], **kwargs: object) -> tuple
         tiles = nf.tile_features(image, model.tile_px)
         t2 = time.perf_counter()
         if hasattr(model, "looks_"):
-            transform = pose_matrix(frame.pose)
-            out.append(model._predict_features(tiles, calib, transform, t=frame.t, frame=i))
+            out.append(model.predict_tiles(tiles, calib, frame.pose, t=frame.t, frame=i))
             times["predict"].append(time.perf_counter() - t2)
         t3 = time.perf_counter()
         if labels[i] is not None:
-            model._update_features(tiles, calib, model._target(labels[i]))
+            model.update_tiles(tiles, calib, labels[i])
             times["update"].append(time.perf_counter() - t3)
         times["read"].append(t1 - t0)
         times["features"].append(t2 - t1)
@@ -110,8 +116,8 @@ def texture_baseline(traverse: Traverse, world: HeightField, labels: list[str | 
     from sklearn.naive_bayes import GaussianNB
 
     calib = traverse.spec.calibration
-    model = nf.NearToFar(CLASS_NAMES)
-    geometry = model._tiles(calib)  # the same tiles as the model
+    model = nf.NearToFar(CLASS_NAMES, PATCH)
+    geometry = model.tile_geometry(calib)  # the same tiles as the model
     n_tiles = geometry.n_rows * geometry.n_cols
     edges = np.array([0.0, 1.5, 2.0, 3.0, 4.0])
     sets = {"colour (this module)": None, "colour + LBP + gradient": None}
@@ -119,7 +125,7 @@ def texture_baseline(traverse: Traverse, world: HeightField, labels: list[str | 
     hits = {name: np.zeros(len(edges) - 1) for name in sets}
     count = np.zeros(len(edges) - 1)
     seen: set[int] = set()
-    near = model._in_near(geometry.ground[:, 0], geometry.ground[:, 1])
+    near = model.near_tiles(calib)
     for i, frame in enumerate(traverse.frames):
         if frame.left is None or labels[i] is None:
             continue
@@ -143,7 +149,7 @@ def texture_baseline(traverse: Traverse, world: HeightField, labels: list[str | 
         ground = geometry.ground @ transform[:3, :3].T + transform[:3, 3]
         ok = np.isfinite(geometry.distance)
         truth = np.full(n_tiles, -1)
-        truth[ok] = nf._world_class(world, ground[ok, 0], ground[ok, 1])
+        truth[ok] = world_class(world, ground[ok, 0], ground[ok, 1])
         evaluate = ok & ~near & (truth >= 0) & np.isin(truth, list(seen))
         b = np.searchsorted(edges, geometry.distance[evaluate], side="right") - 1
         inside = (b >= 0) & (b < len(count))
@@ -176,10 +182,10 @@ def report(path: Path, args: argparse.Namespace) -> None:
     n_images = sum(f.left is not None for f in traverse.frames)
     print(f"\n## {traverse.name}: {len(traverse)} frames, {n_images} with images ({path})")
     preds, times = run(traverse, labels, tile_px=args.tile)
-    table = nf.far_field_accuracy(preds, world, threshold=args.threshold)
+    table = far_field_accuracy(preds, world, threshold=args.threshold)
     print(table.to_text())
     poses = traverse.poses()
-    ours = nf.area_coverage(preds, poses, world, threshold=args.threshold)
+    ours = area_coverage(preds, poses, world, PATCH, threshold=args.threshold)
     base_preds, _ = run(
         traverse,
         labels,
@@ -189,9 +195,9 @@ def report(path: Path, args: argparse.Namespace) -> None:
         min_support=1,
         min_confidence=0.0,
     )
-    ceiling = nf.area_coverage(base_preds, poses, world, threshold=0.0)
-    base = nf.area_coverage(base_preds, poses, world, threshold=args.threshold)
-    base_table = nf.far_field_accuracy(base_preds, world, threshold=args.threshold)
+    ceiling = area_coverage(base_preds, poses, world, PATCH, threshold=0.0)
+    base = area_coverage(base_preds, poses, world, PATCH, threshold=args.threshold)
+    base_table = far_field_accuracy(base_preds, world, threshold=args.threshold)
     print(
         f"\n  area (m^2, {ours.cell:g} m grid): near {ours.near_area:.2f}; near + far "
         f"(p >= {args.threshold:g}) {ours.total_area:.2f} = {ours.ratio:.2f} x, fused far "

@@ -32,19 +32,19 @@ import time
 import cv2
 import numpy as np
 
+from rough_map.patch import PatchSpec
 from rough_map.simulate.render import render_stereo
 from rough_map.stereo import (
     SGBMConfig,
     StereoCalibration,
     StereoConfig,
-    _patch_cloud,
-    _sgbm_raw,
-    _window_cloud,
-    _window_outlier_mask,
     fit_ground,
     patch_window,
     stereo_to_cloud,
 )
+from rough_map.stereo.matching import sgbm_raw
+from rough_map.stereo.outliers import window_outlier_mask
+from rough_map.stereo.triangulation import window_cloud
 from rough_map.types import HeightField
 
 
@@ -84,6 +84,7 @@ def main() -> None:
     args = parser.parse_args()
 
     calib = StereoCalibration.xb3_default()
+    patch = PatchSpec()
     config = StereoConfig()
     one_pass = config.model_copy(
         update={"fit_ground": False, "height_tolerance": 0.15, "col_step": 1, "margin_px": 8}
@@ -97,7 +98,7 @@ def main() -> None:
         f"load average {os.getloadavg()[0]:.1f} (other processes slow the wall times)"
     )
 
-    rows = patch_window(calib).rows
+    rows = patch_window(calib, patch).rows
     left, right, _ = render_stereo(world, (0, 0, 0, 0, 0, 0), calib)  # warm-up (imports)
     t_full, t_full_best, _ = timed(lambda: render_stereo(world, (0, 0, 0, 0, 0, 0), calib), 3)
     t_rows, t_rows_best, _ = timed(
@@ -123,46 +124,54 @@ def main() -> None:
         print(
             f"{name:<17}{med * 1e3:>10.1f}{best * 1e3:>9.1f}{1 / med:>10.1f}{cpu * 1e3:>8.0f}{n:>9}"
         )
-    full, patch = results["full frame"][0], results["patch"][0]
+    t_frame, t_patch = results["full frame"][0], results["patch"][0]
     print(
-        f"patch / full-frame speed-up: {full[0] / patch[0]:.1f}x (median wall), "
-        f"{full[2] / patch[2]:.1f}x (CPU); target >= 10 frames/s for the patch path, i.e. "
-        f"<= ~120 ms of CPU per frame on 2 idle cores: {patch[2] * 1e3:.0f} ms here"
+        f"patch / full-frame speed-up: {t_frame[0] / t_patch[0]:.1f}x (median wall), "
+        f"{t_frame[2] / t_patch[2]:.1f}x (CPU); target >= 10 frames/s for the patch path, i.e. "
+        f"<= ~120 ms of CPU per frame on 2 idle cores: {t_patch[2] * 1e3:.0f} ms here"
     )
 
     # Breakdown of the patch path (the calls stereo_to_cloud makes).
-    fit = fit_ground(left, right, calib, config)
+    fit = fit_ground(left, right, calib, config, patch=patch)
     assert fit is not None
     window = patch_window(
         calib,
+        patch,
         height_tolerance=fit[1],
         plane=fit[0],
         clip=True,
         crop_margin=config.crop_margin,
         margin_px=config.margin_px,
     )
-    coarse = timed(lambda: fit_ground(left, right, calib, config), args.reps)
+    coarse = timed(lambda: fit_ground(left, right, calib, config, patch=patch), args.reps)
 
     def fine_sgm():
-        return _sgbm_raw(
+        return sgbm_raw(
             left, right, config.sgbm, window.rows, window.cols, window.residual, 1, window.prior
         )
 
     sgm = timed(fine_sgm, args.reps)
     raw = fine_sgm()
-    half = 0.448 + config.crop_margin
+    half = patch.size / 2 + config.crop_margin
 
     def points():
-        return _window_cloud(
-            raw, calib, window, ahead=1.0, half=half, lateral=0.0, col_step=config.col_step
+        return window_cloud(
+            raw, calib, window, patch, margin=config.crop_margin, col_step=config.col_step
         )
 
     pts = timed(points, args.reps)
     x, y, z, dz = points()
     f = config.outlier_filter
     filt = timed(
-        lambda: _window_outlier_mask(
-            x, y, dz, (1.0 - half, -half), f.cell, f.k, f.min_tolerance, f.min_count
+        lambda: window_outlier_mask(
+            x,
+            y,
+            dz,
+            (patch.ahead - half, patch.lateral - half),
+            f.cell,
+            f.k,
+            f.min_tolerance,
+            f.min_count,
         ),
         args.reps,
     )
@@ -177,7 +186,7 @@ def main() -> None:
         f"({len(z)} points) {filt[2] * 1e3:.1f} / {filt[0] * 1e3:.1f}"
     )
     one = one_pass
-    win1 = patch_window(calib, height_tolerance=one.height_tolerance)
+    win1 = patch_window(calib, patch, height_tolerance=one.height_tolerance)
     print(
         f"one-pass patch path searched {win1.rows[1] - win1.rows[0]} rows x "
         f"{win1.cols[1] - win1.cols[0]} columns, {win1.residual[1]} residual disparities"
@@ -189,10 +198,9 @@ def main() -> None:
     except ImportError:
         o3d = None
     if o3d is not None:
-        cloud = np.column_stack(
-            _patch_cloud(left, right, calib, one, 1.0, 0.896, 0.0, None, None)[:3]
-        )
-        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud.astype(np.float64)))
+        unfiltered = one.model_copy(update={"outlier_filter": None})
+        cloud = stereo_to_cloud(left, right, calib, unfiltered, patch=patch)
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud))
         o3d_time = timed(lambda: pcd.remove_statistical_outlier(nb_neighbors=20, std_ratio=2.0), 1)
         print(
             f"open3d remove_statistical_outlier on the one-pass cloud ({len(cloud)} points): "

@@ -20,6 +20,7 @@ only ``metadata`` is free-form.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path, PurePosixPath, PureWindowsPath
@@ -40,6 +41,7 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
+from rough_map._files import atomic_output
 from rough_map.errors import FileFormatError, InputError, SchemaError
 from rough_map.geometry import CAMERA_AXES_IN_VEHICLE, pose_matrix, rotation_matrix
 
@@ -512,8 +514,6 @@ def write_schemas(out_dir: str | Path) -> list[Path]:
     list of Path
         The files written.
     """
-    from rough_map._files import atomic_output
-
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
@@ -523,3 +523,40 @@ def write_schemas(out_dir: str | Path) -> list[Path]:
             tmp.write_text(text, encoding="utf-8")
         written.append(target)
     return written
+
+
+# --------------------------------------------------------------------------------------------
+# Plain JSON values
+
+
+def jsonable(value: Any) -> Any:
+    """``value`` as plain JSON types, for the JSON files and outputs of rough_map.
+
+    Numpy scalars and arrays become numbers and lists, NaN and inf None (JSON has no
+    NaN), paths strings, objects with a ``to_dict()`` (such as
+    :class:`rough_map.evaluation.near_far.AccuracyTable`) and dataclasses dicts.
+
+    Raises
+    ------
+    TypeError
+        Something else that JSON cannot hold.
+    """
+    if isinstance(value, dict):
+        return {str(k): jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return jsonable(value.tolist())
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if value is None or isinstance(value, bool | int | float | str):
+        return value
+    if isinstance(value, Path):
+        return str(value)
+    if callable(getattr(value, "to_dict", None)):
+        return jsonable(value.to_dict())
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return jsonable(dataclasses.asdict(value))
+    raise TypeError(f"cannot write a {type(value).__name__} as JSON")

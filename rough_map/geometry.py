@@ -43,11 +43,16 @@ CAMERA_AXES_IN_VEHICLE.setflags(write=False)
 class PinholeCamera(Protocol):
     """What the projections need of a calibration (:class:`rough_map.config.StereoCalibration`)."""
 
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    camera_to_vehicle: Any  # 4x4, camera (OpenCV, m) -> vehicle (m)
+    @property
+    def fx(self) -> float: ...  # px
+    @property
+    def fy(self) -> float: ...  # px
+    @property
+    def cx(self) -> float: ...  # px
+    @property
+    def cy(self) -> float: ...  # px
+    @property
+    def camera_to_vehicle(self) -> Any: ...  # 4x4, camera (OpenCV, m) -> vehicle (m)
 
 
 def rotation_matrix(roll: float = 0.0, pitch: float = 0.0, yaw: float = 0.0) -> NDArray[np.float64]:

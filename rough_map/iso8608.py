@@ -167,7 +167,9 @@ def _resolve_phi0(phi0: float | str) -> float:
     return _positive("phi0", phi0)
 
 
-def power_law(omega: np.ndarray, phi0: float, waviness: float, omega0: float = OMEGA0):
+def power_law(
+    omega: np.ndarray, phi0: float, waviness: float, omega0: float = OMEGA0
+) -> np.ndarray:
     """``phi0 * (omega / omega0) ** waviness`` in m^3/rad, with 0 at omega = 0."""
     omega = np.asarray(omega, dtype=float)
     with np.errstate(divide="ignore"):

@@ -370,7 +370,7 @@ def grid_points(
         normal, centre_z = _plane(pts, spec, rot)
         if normal is not None:
             angle = math.acos(min(1.0, float(normal[2])))
-        if angle > level_threshold:
+        if normal is not None and angle > level_threshold:
             lev = levelling_rotation(normal)
             centre = np.array([spec.ahead, spec.lateral, centre_z])
             rot = lev if rot is None else lev @ rot

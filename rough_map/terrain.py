@@ -233,7 +233,9 @@ _EXTRAS: dict[str, Callable[[tuple[int, int], float, np.random.Generator], np.nd
 # --------------------------------------------------------------------------- defects
 
 
-def _disc(h: np.ndarray, spacing: float, centre: tuple[float, float], radius: float):
+def _disc(
+    h: np.ndarray, spacing: float, centre: tuple[float, float], radius: float
+) -> tuple[np.ndarray, float]:
     ny, nx = h.shape
     x = np.arange(nx) * spacing - centre[0]
     y = np.arange(ny) * spacing - centre[1]
@@ -289,4 +291,9 @@ def add_rock(
     return np.maximum(h, h + height * np.sqrt(np.clip(1 - (r / radius) ** 2, 0, None)))
 
 
-DEFECTS = {"manhole": add_manhole, "pit": add_pit, "rock": add_rock}
+#: Defect name -> ``add(h, spacing, centre, **size)`` returning a new height grid (m).
+DEFECTS: dict[str, Callable[..., np.ndarray]] = {
+    "manhole": add_manhole,
+    "pit": add_pit,
+    "rock": add_rock,
+}

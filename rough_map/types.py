@@ -46,7 +46,7 @@ class HeightField:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.heights.shape  # type: ignore[return-value]
+        return self.heights.shape
 
     def xy(self) -> tuple[np.ndarray, np.ndarray]:
         """World x (per column) and y (per row) of the cell centres, in m."""

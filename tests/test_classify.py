@@ -5,13 +5,16 @@ from __future__ import annotations
 import copy
 from pathlib import Path
 
+import joblib
 import numpy as np
 import pytest
+from sklearn.base import clone
 from sklearn.metrics import accuracy_score, f1_score
 from sklearn.utils.estimator_checks import parametrize_with_checks
 
 from rough_map import errors
 from rough_map.classify import (
+    EXCLUDED_FEATURES,
     FEATURE_DOC,
     INPUT_SCALARS,
     RoughnessLevels,
@@ -24,11 +27,13 @@ from rough_map.classify import (
     frame_steps,
     jitter_levels,
     load_roughness_levels,
+    load_terrain_model,
     make_classifier,
     roughness_level,
 )
 from rough_map.evaluation.metrics import scores
 from rough_map.features import COLUMNS, FeatureTable
+from rough_map.filter import IsolatedSpikes, PathFilter, make_terrain_model
 
 ROOT = Path(__file__).resolve().parents[1]
 OMEGA = default_omega(56)  # the paper's patch: 0.896 m at 8 mm, rad/m
@@ -148,16 +153,70 @@ def synthetic_tables() -> tuple[list[FeatureTable], list[FeatureTable]]:
 
 @pytest.fixture(scope="module")
 def fitted_model(synthetic_tables) -> TerrainModel:
+    """The shipped configuration (classifier, path filter, defect detector)."""
     train, _ = synthetic_tables
-    return TerrainModel(cv=3).fit(train)
+    return make_terrain_model(cv=3).fit(train)
 
 
 # ------------------------------------------------------------------------- SpectralFeatures
 
 
-@parametrize_with_checks([SpectralFeatures(scalars=())])
+#: The model that ships (models/default), and the configurations it holds.
+SHIPPED = load_terrain_model("default")
+#: Its SpectralFeatures: the paper's patch, EXCLUDED_FEATURES left out.
+SHIPPED_FEATURES = clone(SHIPPED.classifier_.named_steps["features"])
+
+#: Why checks fail on the shipped layout.
+FIXED_LAYOUT = (
+    "the shipped SpectralFeatures takes a fixed layout, the 9 INPUT_SCALARS then one log10 PSD "
+    "column per wavenumber of the paper's patch (65 columns); the check's generic X has 1 to 10 "
+    "columns, which fit refuses with an InputError (SpectralFeatures(scalars=()) runs them)"
+)
+FIXED_LAYOUT_CHECKS = (
+    "check_dict_unchanged",
+    "check_dont_overwrite_parameters",
+    "check_dtype_object",
+    "check_estimators_dtypes",
+    "check_estimators_fit_returns_self",
+    "check_estimators_overwrite_params",
+    "check_estimators_pickle",
+    "check_f_contiguous_array_estimator",
+    "check_fit2d_1sample",
+    "check_fit2d_predict1d",
+    "check_fit_check_is_fitted",
+    "check_fit_idempotent",
+    "check_fit_score_takes_y",
+    "check_methods_sample_order_invariance",
+    "check_methods_subset_invariance",
+    "check_n_features_in",
+    "check_n_features_in_after_fitting",
+    "check_pipeline_consistency",
+    "check_positive_only_tag_during_fit",
+    "check_readonly_memmap_input",
+    "check_transformer_data_not_an_array",
+    "check_transformer_general",
+    "check_transformer_preserve_dtypes",
+)
+
+
+@parametrize_with_checks(
+    [SpectralFeatures(scalars=()), SHIPPED_FEATURES],
+    expected_failed_checks=lambda est: (
+        dict.fromkeys(FIXED_LAYOUT_CHECKS, FIXED_LAYOUT) if est.scalars else {}
+    ),
+    xfail_strict=True,
+)
 def test_sklearn_compatible(estimator, check) -> None:
     check(estimator)
+
+
+def test_shipped_features_configuration() -> None:
+    """The configuration checked above is the one make_classifier builds."""
+    assert SHIPPED_FEATURES.scalars == INPUT_SCALARS
+    assert SHIPPED_FEATURES.exclude == EXCLUDED_FEATURES
+    np.testing.assert_allclose(SHIPPED_FEATURES.omega, OMEGA, rtol=1e-12)
+    built = make_classifier("logistic", omega=SHIPPED_FEATURES.omega).named_steps["features"]
+    assert repr(built.get_params()) == repr(SHIPPED_FEATURES.get_params())
 
 
 def power_law_matrix(R: float = 256e-6, w: float = -2.4, n: int = 3) -> np.ndarray:
@@ -434,7 +493,7 @@ def test_an_isolated_defect_does_not_change_the_class(fitted_model) -> None:
     assert np.all(pred.filtered_class == "concrete")
     assert not fitted_model.predict(table, mode="forward").defect.any()  # needs the future
     off = copy.copy(fitted_model)
-    off.defect_ratio = None
+    off.set_params(defects=None)
     assert not off.predict(table).defect.any()
 
 
@@ -451,7 +510,7 @@ def test_training_needs_labels(synthetic_tables) -> None:
 
 def test_one_traverse_uses_contiguous_blocks(synthetic_tables, caplog) -> None:
     train, _ = synthetic_tables
-    model = TerrainModel(cv=3, evidence_per_m=1.0, level_jitter=0.0).fit(train[:1])
+    model = make_terrain_model(cv=3, evidence_per_m=1.0, level_jitter=0.0).fit(train[:1])
     assert model.cv_report_["scheme"].startswith("one traverse")
     assert "only one traverse" in caplog.text
 
@@ -524,7 +583,7 @@ def test_jitter_scales_the_terrain_not_the_sensor() -> None:
         ({"evidence_per_m": -1.0}, "evidence_per_m"),
         ({"level_jitter": -0.1}, "level_jitter"),
         ({"waviness_jitter": -0.1}, "waviness_jitter"),
-        ({"defect_ratio": 0.5}, "defect_ratio"),
+        ({"defect_ratio": 0.5}, "ratio must be"),
         ({"cv": 1}, "cv must be"),
         ({"level_names": ("low", "high"), "level_thresholds": (1e-4, 2e-4)}, "thresholds"),
         ({"kind": "tree"}, "kind must be one of"),
@@ -532,9 +591,130 @@ def test_jitter_scales_the_terrain_not_the_sensor() -> None:
 )
 def test_terrain_model_bad_parameters(synthetic_tables, params, match) -> None:
     with pytest.raises((errors.InputError, ValueError), match=match):
-        TerrainModel(**params).fit(synthetic_tables[0][:2])
+        make_terrain_model(**params).fit(synthetic_tables[0][:2])
 
 
 def test_unfitted_model() -> None:
     with pytest.raises(errors.NotFittedError, match="not fitted"):
         TerrainModel().predict(None)
+
+
+# ------------------------------------------------------------------------- scikit-learn API
+
+#: Why scikit-learn's data checks do not apply to TerrainModel.
+TABLES_NOT_ARRAYS = (
+    "TerrainModel.fit takes a sequence of FeatureTables (one per traverse, the labels in their "
+    "'label' column, the distances from their poses), not an (X, y) pair of arrays, and "
+    "predict takes one table; the API checks run, and what the data checks test (fit returns "
+    "self, leaves its parameters alone, is repeatable, and the model survives a copy) is "
+    "tested on tables below"
+)
+TABLE_CHECKS = (
+    "check_complex_data",
+    "check_dict_unchanged",
+    "check_dont_overwrite_parameters",
+    "check_dtype_object",
+    "check_estimator_sparse_array",
+    "check_estimator_sparse_matrix",
+    "check_estimator_sparse_tag",
+    "check_estimators_dtypes",
+    "check_estimators_empty_data_messages",
+    "check_estimators_fit_returns_self",
+    "check_estimators_nan_inf",
+    "check_estimators_overwrite_params",
+    "check_estimators_pickle",
+    "check_f_contiguous_array_estimator",
+    "check_fit2d_1feature",
+    "check_fit2d_1sample",
+    "check_fit2d_predict1d",
+    "check_fit_check_is_fitted",
+    "check_fit_idempotent",
+    "check_fit_score_takes_y",
+    "check_methods_sample_order_invariance",
+    "check_methods_subset_invariance",
+    "check_n_features_in",
+    "check_n_features_in_after_fitting",
+    "check_pipeline_consistency",
+    "check_positive_only_tag_during_fit",
+    "check_readonly_memmap_input",
+)
+
+
+@parametrize_with_checks(
+    [clone(SHIPPED), TerrainModel()],
+    expected_failed_checks=lambda est: dict.fromkeys(TABLE_CHECKS, TABLES_NOT_ARRAYS),
+    xfail_strict=True,
+)
+def test_terrain_model_sklearn_api(estimator, check) -> None:
+    check(estimator)
+
+
+def test_make_terrain_model_builds_what_ships() -> None:
+    """The shipped model's parameters are those of make_terrain_model (and `rough-map train`
+    with its defaults), apart from the levels and the extraction it records."""
+    params = SHIPPED.get_params()
+    built = make_terrain_model(
+        level_thresholds=params["level_thresholds"], extraction=params["extraction"]
+    )
+    assert repr(built.get_params(deep=True)) == repr(SHIPPED.get_params(deep=True))
+
+
+@pytest.fixture(scope="module")
+def small_tables() -> list[FeatureTable]:
+    rng = np.random.default_rng(17)
+    return [synthetic_table(rng, random_segments(rng, 40.0), name=f"s{i}") for i in range(2)]
+
+
+def _quick(**params) -> TerrainModel:
+    return make_terrain_model(cv=2, evidence_per_m=1.5, level_jitter=0.0, **params)
+
+
+def test_terrain_model_is_a_scikit_learn_estimator(small_tables, fitted_model) -> None:
+    """clone, get_params/set_params; fit returns self, leaves its parameters alone and
+    gives the same model twice."""
+    model = _quick()
+    params = joblib.hash(model.get_params(deep=True))
+    assert model.fit(small_tables) is model
+    assert joblib.hash(model.get_params(deep=True)) == params
+    assert model.get_params()["path_filter__mode"] == "smooth"
+    assert "filter_" in vars(model) and "filter_" not in vars(model.path_filter)
+    again = clone(model)
+    assert not hasattr(again, "classifier_")
+    assert again.get_params()["defects"] == IsolatedSpikes(ratio=8.0)
+    again.fit(small_tables)
+    assert again.cv_report_ == model.cv_report_
+    for table in small_tables:
+        a, b = model.predict(table), again.predict(table)
+        np.testing.assert_array_equal(a.filtered_proba, b.filtered_proba)
+        np.testing.assert_array_equal(a.raw_proba, b.raw_proba)
+    fitted_attrs = {k for k in vars(fitted_model) if k.endswith("_")}
+    documented = TerrainModel.__doc__ or ""
+    assert fitted_attrs and all(f"{k} :" in documented for k in fitted_attrs), fitted_attrs
+
+
+def test_without_a_path_filter_the_filtered_class_is_the_raw_one(small_tables) -> None:
+    model = TerrainModel(cv=2, level_jitter=0.0).fit(small_tables)
+    assert model.filter_ is None and model.evidence_per_m_ is None
+    assert model.cv_report_["filtered"] == model.cv_report_["raw"]
+    pred = model.predict(small_tables[0])
+    np.testing.assert_array_equal(pred.filtered_class, pred.raw_class)
+    np.testing.assert_array_equal(pred.filtered_proba, pred.raw_proba)
+    assert not pred.defect.any()
+
+
+@pytest.mark.parametrize(
+    ("params", "match"),
+    [
+        ({"path_filter": PathFilter()}, "inputs='log_likelihood'"),
+        ({"path_filter": object()}, "path_filter must be an estimator"),
+        ({"defects": "manholes"}, "defects must be None or a callable"),
+    ],
+)
+def test_terrain_model_bad_components(small_tables, params, match) -> None:
+    with pytest.raises(errors.InputError, match=match):
+        TerrainModel(**params).fit(small_tables)
+
+
+def test_labels_come_from_the_tables(small_tables) -> None:
+    with pytest.raises(errors.InputError, match="y must be None"):
+        TerrainModel().fit(small_tables, ["gravel"] * 3)

@@ -278,7 +278,7 @@ def test_emit_json_writes_whole_documents_or_nothing(capsys) -> None:
 
 
 def test_accuracy_table_to_dict() -> None:
-    from rough_map.map.near_far import AccuracyTable
+    from rough_map.evaluation.near_far import AccuracyTable
 
     table = AccuracyTable(
         edges=np.array([0.0, 1.5, 2.0]),

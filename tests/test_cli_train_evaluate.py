@@ -115,7 +115,8 @@ def test_train_writes_model_and_card(trained) -> None:
     assert card["cross_validation"]["scheme"].startswith("GroupKFold")
     assert card["training_data"]["traverses"][0]["name"] == "train_a"
     assert {"level", "slope", "curvature"} <= set(card["features"]["derived"])
-    assert card["command"] is None or card["command"].startswith("rough-map train")
+    # The command as typed, -q before the command name included.
+    assert card["command"].startswith("rough-map -q train ") and card["command"].endswith("--cv 2")
 
 
 def test_evaluate_json_and_plot(sim, trained, tmp_path, capsys) -> None:
@@ -207,8 +208,8 @@ def test_macro_f1_averages_the_true_classes_only() -> None:
 
 def test_raw_and_filtered_confusion_matrices_share_their_classes(sim) -> None:
     """The shipped model on v05: whatever raw and filtered predict, one class list."""
+    from rough_map.classify import load_terrain_model
     from rough_map.evaluation import evaluate_model
-    from rough_map.io.model import load_terrain_model
 
     model = load_terrain_model(ROOT / "models" / "default")
     table = read_features(sim["v05_csv"])
@@ -227,9 +228,13 @@ def test_raw_and_filtered_confusion_matrices_share_their_classes(sim) -> None:
 
 def test_unlabelled_and_invalid_frames_are_counted(sim, trained, tmp_path, capsys) -> None:
     table = read_features(sim["v05_csv"])
-    table.columns["label"][:3] = ""
-    table.columns["valid"][5:9] = False
-    table.log_psd[5:9] = np.nan
+    label = np.array(table.columns["label"], dtype=object)
+    label[:3] = ""
+    valid = np.array(table.columns["valid"], dtype=bool)
+    valid[5:9] = False
+    log_psd = np.array(table.log_psd)
+    log_psd[5:9] = np.nan
+    table = table.replace(label=label, valid=valid, log_psd=log_psd)
     path = write_features(table, tmp_path / "holes.csv")
     code, out, _ = run(capsys, "evaluate", path, "--model", trained, "--json")
     assert code == 0
@@ -258,8 +263,9 @@ def test_train_refuses_traverses_without_labels(sim, tmp_path, capsys) -> None:
 
 def test_evaluate_refuses_unknown_classes(sim, trained, tmp_path, capsys) -> None:
     table = read_features(sim["v05_csv"])
-    table.columns["label"][:4] = "sand"
-    path = write_features(table, tmp_path / "sand.csv")
+    label = np.array(table.columns["label"], dtype=object)
+    label[:4] = "sand"
+    path = write_features(table.replace(label=label), tmp_path / "sand.csv")
     code, _, err = run(capsys, "evaluate", path, "--model", trained)
     assert code == 2
     assert "'sand'" in err and "does not know" in err
@@ -271,7 +277,7 @@ def test_evaluate_refuses_a_model_from_elsewhere(sim, tmp_path, capsys) -> None:
     code, _, err = run(capsys, "evaluate", sim["v05_csv"], "--model", fake)
     assert code == 2 and "no model card" in err
     card = json.loads(Path(str(ROOT / "models" / "default.card.json")).read_text())
-    from rough_map.io.model import sha256_file
+    from rough_map.classify import sha256_file
 
     card["sha256"] = sha256_file(fake)
     tmp_path.joinpath("fake.card.json").write_text(json.dumps(card))
@@ -282,8 +288,8 @@ def test_evaluate_refuses_a_model_from_elsewhere(sim, tmp_path, capsys) -> None:
 
 def test_default_model_generalises_to_unseen_traverses(sim) -> None:
     """The shipped model on other seeds, the speeds 0.3/0.5/0.7 m/s and a sparser sensor."""
+    from rough_map.classify import load_terrain_model
     from rough_map.evaluation import evaluate_model
-    from rough_map.io.model import load_terrain_model
 
     model = load_terrain_model(ROOT / "models" / "default")
     tables = [read_features(sim[f"{k}_csv"]) for k in ("v03", "v05", "v07")]

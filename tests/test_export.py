@@ -11,6 +11,7 @@ from rough_map.config import Crs
 from rough_map.errors import InputError
 from rough_map.export import export_map
 from rough_map.export.geotiff import (
+    class_colours,
     overview_factors,
     value_layers,
     write_class_geotiff,
@@ -25,6 +26,7 @@ from rough_map.export.png import (
     scale_bar_length,
     write_pngs,
 )
+from rough_map.export.profiles import CLASS_COLOURS, OTHER_CLASS_COLOURS, class_colour
 from rough_map.features import FeatureTable
 from rough_map.map import (
     EmptyMapWarning,
@@ -104,6 +106,24 @@ def test_cell_centres_read_back_lie_on_their_patch(tmp_path, patches, utm_map):
         np.testing.assert_array_equal(np.isnan(R), np.isnan(np.flipud(utm_map["R"])))
 
 
+@pytest.mark.filterwarnings("ignore:Use `@` matmul:PendingDeprecationWarning")  # rasterio 1.4
+def test_transform_is_from_origin_at_the_north_west_corner(tmp_path, utm_map):
+    """The map's origin is its south-west corner; the file's transform starts north-west."""
+    geo = utm_map.geometry
+    west, south, _, north = geo.bounds
+    assert north == pytest.approx(south + geo.shape[0] * geo.resolution)
+    expected = rasterio.transform.from_origin(west, north, geo.resolution, geo.resolution)
+    assert geo.transform() == expected
+    path = write_values_geotiff(utm_map, tmp_path / "m.tif", layers=["R"])
+    with rasterio.open(path) as ds:
+        assert ds.transform == expected
+        # the GDAL geotransform it replaced
+        assert ds.transform.to_gdal() == (west, geo.resolution, 0.0, north, 0.0, -geo.resolution)
+        # the centre of the file's last row is the centre of the map's first (southern) row
+        x, y = rasterio.transform.xy(ds.transform, ds.height - 1, 0)
+        assert (x, y) == pytest.approx((west + geo.resolution / 2, south + geo.resolution / 2))
+
+
 def test_value_bands_names_units_nodata_overviews(tmp_path, utm_map):
     path = write_values_geotiff(utm_map, tmp_path / "m.tif")
     with rasterio.open(path) as ds:
@@ -144,6 +164,27 @@ def test_class_band_colour_table_and_names(tmp_path, utm_map):
         np.testing.assert_array_equal(data, expect)
         assert ds.overviews(1)
         assert ds.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG"
+
+
+def test_one_class_colour_everywhere(strip_map):
+    """GeoTIFF colour tables, layer PNGs and report figures take one colour per class."""
+    from matplotlib import colormaps
+
+    from rough_map.export import figures, png
+
+    tab10 = colormaps["tab10"]
+    assert OTHER_CLASS_COLOURS == tuple(
+        tuple(int(round(255 * v)) for v in tab10(i)[:3]) for i in range(10)
+    )
+    names = ("gravel", "asphalt", "lava", "concrete")
+    table = class_colours(names)
+    assert table[0][:3] == CLASS_COLOURS["gravel"] and table[1][:3] == OTHER_CLASS_COLOURS[1]
+    assert [table[i][:3] for i in range(4)] == [class_colour(n, i) for i, n in enumerate(names)]
+    assert figures.class_colour is class_colour
+    layer_colours = png._colours(strip_map, "class")
+    assert layer_colours == [
+        tuple(v / 255 for v in class_colour(n, i)) for i, n in enumerate(LONG_NAMES)
+    ]
 
 
 def test_gtiff_fallback_keeps_overviews(tmp_path, utm_map):
@@ -320,6 +361,27 @@ def test_png_units_are_written_one_way(strip_map):
     fig = layer_figure(strip_map, "R")
     labels = " ".join(t.get_text() for t in drawn_texts(fig))
     assert "m³/rad" in labels and "m^" not in labels
+
+
+def test_drawing_figures_leaves_the_backend_alone(tmp_path, strip_map):
+    """No pyplot: a notebook's backend (here svg) is the same after drawing figures."""
+    import matplotlib
+
+    from rough_map.export import figures
+
+    before = matplotlib.get_backend()
+    matplotlib.use("svg")
+    try:
+        omega = np.geomspace(1.0, 100.0, 30)
+        a = figures.profile_psd_fit(omega, 1e-4 * omega**-2.0, 1e-4, -2.0, tmp_path / "a.png")
+        x0, y0, x1, y1 = strip_map.geometry.bounds
+        b = figures.map_layers({"R": strip_map["R"]}, (x0, x1, y0, y1), tmp_path / "b.png")
+        layer_figure(strip_map, "R")
+        assert matplotlib.get_backend() == "svg"
+        for p in (a, b):
+            assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    finally:
+        matplotlib.use(before)
 
 
 def test_gridmap_bag_round_trip(tmp_path, utm_map):

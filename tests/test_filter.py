@@ -9,18 +9,22 @@ import numpy as np
 import pytest
 from filterpy import discrete_bayes
 from scipy.linalg import expm
+from sklearn.base import clone
 from sklearn.exceptions import NotFittedError as SklearnNotFittedError
 from sklearn.pipeline import make_pipeline
 from sklearn.preprocessing import StandardScaler
 from sklearn.utils.estimator_checks import parametrize_with_checks
 
 from rough_map import errors
+from rough_map.classify import load_terrain_model
 from rough_map.filter import (
     PathFilter,
+    Posteriors,
     estimate_generator,
     forward,
     isolated_spikes,
     predict,
+    shipped_path_filter,
     smooth,
     transition_matrices,
     update,
@@ -333,7 +337,8 @@ def test_log_likelihood_input_equals_proba_input(train, test_path) -> None:
     )
 
 
-def test_features_mode_with_auto_weight_in_a_pipeline() -> None:
+def test_classifier_and_auto_weight_in_a_pipeline() -> None:
+    """A classifier before the filter in a Pipeline; the auto weight from held-out posteriors."""
     rng = np.random.default_rng(4)
     parts = []
     for g in range(5):
@@ -342,11 +347,18 @@ def test_features_mode_with_auto_weight_in_a_pipeline() -> None:
         parts.append((feats, CLASSES[yi], d, np.full(len(yi), g)))
     X, y, d, g = (np.concatenate(p) for p in zip(*parts, strict=True))
     train, test = g < 4, g == 4
-    pipe = make_pipeline(StandardScaler(), PathFilter(emission_weight="auto"))
-    pipe.fit(X[train], y[train], pathfilter__distance=d[train], pathfilter__groups=g[train])
+    pipe = make_pipeline(StandardScaler(), Posteriors(), PathFilter(emission_weight="auto"))
+    pipe.fit(
+        X[train],
+        y[train],
+        posteriors__groups=g[train],
+        pathfilter__distance=d[train],
+        pathfilter__groups=g[train],
+    )
     model = pipe[-1]
     assert model.emission_weight_ in (0.1, 0.2, 0.3, 0.4, 0.5, 0.7, 1.0)
-    raw = np.mean(model.classifier_.predict(pipe[0].transform(X[test])) == y[test])
+    classifier = pipe.named_steps["posteriors"].classifier_
+    raw = np.mean(classifier.predict(pipe[0].transform(X[test])) == y[test])
     filtered = np.mean(pipe.predict(X[test], distance=d[test]) == y[test])
     assert filtered > raw + 0.1
 
@@ -365,15 +377,77 @@ ORDER_DEPENDENT = (
 )
 
 
-@parametrize_with_checks(
-    [PathFilter()],
-    expected_failed_checks=lambda est: {
+COLUMNS_ARE_CLASSES = (
+    "the columns of X are the K classes' posteriors or log likelihoods; the check's X has "
+    "another number of columns than y has classes, or values that are no posteriors "
+    "(negative) or log likelihoods (chance accuracy); a classifier goes before the filter in "
+    "a Pipeline (test_classifier_and_auto_weight_in_a_pipeline)"
+)
+COLUMNS_ARE_CLASSES_CHECKS = (
+    "check_classifiers_classes",
+    "check_classifiers_train",
+    "check_dtype_object",
+    "check_estimators_dtypes",
+    "check_estimators_fit_returns_self",
+    "check_estimators_overwrite_params",
+    "check_estimators_pickle",
+    "check_fit2d_1feature",
+    "check_n_features_in_after_fitting",
+    "check_pipeline_consistency",
+    "check_positive_only_tag_during_fit",
+    "check_readonly_memmap_input",
+)
+HELD_OUT = (
+    "fit_transform gives held-out posteriors (cross_val_predict), transform those of the "
+    "classifier fitted on every frame, by design (as scikit-learn's TargetEncoder)"
+)
+
+
+def _expected_failures(estimator) -> dict[str, str]:
+    if isinstance(estimator, Posteriors):
+        return dict.fromkeys(
+            ("check_transformer_data_not_an_array", "check_transformer_general"), HELD_OUT
+        )
+    return {
+        **dict.fromkeys(COLUMNS_ARE_CLASSES_CHECKS, COLUMNS_ARE_CLASSES),
         "check_methods_sample_order_invariance": ORDER_DEPENDENT,
         "check_methods_subset_invariance": ORDER_DEPENDENT,
-    },
+    }
+
+
+#: The path filter of the model that ships (models/default), unfitted.
+SHIPPED_FILTER = clone(load_terrain_model("default").filter_)
+
+
+def test_shipped_path_filter_is_the_one_that_ships() -> None:
+    assert repr(shipped_path_filter("smooth").get_params()) == repr(SHIPPED_FILTER.get_params())
+
+
+@parametrize_with_checks(
+    # the default, the path filter of the shipped model and `rough-map train`, a classifier
+    [PathFilter(), SHIPPED_FILTER, Posteriors()],
+    expected_failed_checks=_expected_failures,
+    xfail_strict=True,
 )
 def test_sklearn_compatible(estimator, check) -> None:
     check(estimator)
+
+
+def test_posteriors_columns_and_frames_without_a_measurement() -> None:
+    rng = np.random.default_rng(0)
+    y = np.repeat(["a", "b", "c"], 20)
+    X = rng.normal(size=(60, 2)) + np.repeat([[0, 0], [3, 0], [0, 3]], 20, axis=0)
+    X[5] = np.nan
+    y[5] = "z"  # a class seen on a frame without a measurement only
+    step = Posteriors().fit(X, y)
+    out = step.transform(X)
+    assert list(step.classes_) == ["a", "b", "c", "z"]
+    assert np.isnan(out[5]).all()
+    np.testing.assert_allclose(np.delete(out, 5, axis=0).sum(axis=1), 1.0)
+    assert np.all(np.delete(out, 5, axis=0)[:, 3] == 0.0)  # the classifier never saw 'z'
+    held_out = Posteriors().fit_transform(X, y, groups=np.repeat([0, 1, 2, 3, 4], 12))
+    assert held_out.shape == out.shape and np.isnan(held_out[5]).all()
+    assert not np.allclose(np.delete(held_out, 5, 0), np.delete(out, 5, 0))
 
 
 def test_not_fitted_error_is_both_kinds() -> None:

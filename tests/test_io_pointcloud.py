@@ -12,16 +12,10 @@ import open3d as o3d
 import pytest
 from laspy.vlrs.known import WktCoordinateSystemVlr
 
+from rough_map._files import atomic_output
 from rough_map.errors import FileFormatError, InputError
-from rough_map.io.pointcloud import (
-    READERS,
-    WRITERS,
-    atomic_output,
-    read_cloud,
-    read_kitti_poses,
-    read_las,
-    write_cloud,
-)
+from rough_map.io.las import read_las
+from rough_map.io.pointcloud import READERS, WRITERS, read_cloud, read_kitti_poses, write_cloud
 
 DATA = Path(__file__).parent / "data"
 US_FOOT = 1200 / 3937  # m
@@ -218,6 +212,19 @@ def test_las_crs_variants(tmp_path: Path) -> None:
     )
     with pytest.raises(FileFormatError, match=r"geographic\.las \[crs\]: geographic CRS"):
         read_las(_las_with_wkt(tmp_path / "geographic.las", geographic))
+
+
+def test_las_unparsable_wkt_taken_as_metres(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path = _las_with_wkt(tmp_path / "broken.las", 'PROJCS["broken"')
+    with caplog.at_level(logging.WARNING, logger="rough_map"):
+        cloud = read_las(path)
+    assert cloud.crs is not None and cloud.crs.epsg is None
+    assert cloud.crs.horizontal_unit_m == cloud.crs.vertical_unit_m == 1.0
+    np.testing.assert_allclose(cloud.points[:, 2], [5.0, 6.0], atol=1e-9)
+    assert "broken.las: could not parse the WKT of the CRS" in caplog.text
+    assert "CRS without a linear unit; coordinates taken as m" in caplog.text
 
 
 # --------------------------------------------------------------------------------------------

@@ -334,7 +334,8 @@ def test_bad_traverse_inputs():
 @pytest.fixture(scope="module")
 def simulated(tmp_path_factory):
     from rough_map.features import traverse_features
-    from rough_map.simulate.course import SensorSpec, load_world, simulate
+    from rough_map.io.truth import load_world
+    from rough_map.simulate.course import SensorSpec, simulate
 
     out = tmp_path_factory.mktemp("sim") / "mixed"
     # 4 mm world cells: half the simulation time of the 2 mm default; the class map and

@@ -54,7 +54,9 @@ def test_covering_is_on_the_lattice_and_covers():
 
 def test_geotransform_is_north_up():
     geo = GridGeometry(0.2, (3.0, 5.0), (10, 20))
-    assert geo.transform() == (3.0, 0.2, 0.0, 7.0, 0.0, -0.2)
+    assert geo.transform().to_gdal() == (3.0, 0.2, 0.0, 7.0, 0.0, -0.2)
+    # the south-west corner of the map is the bottom-left corner of the north-up raster
+    assert geo.transform() @ (0, 10) == pytest.approx((3.0, 5.0))
 
 
 @pytest.mark.parametrize(

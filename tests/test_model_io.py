@@ -1,4 +1,5 @@
-"""rough_map.io.model: skops files with trusted types, sha256 in the card, clear refusals."""
+"""rough_map.classify.persistence: skops files with trusted types, sha256 in the card,
+clear refusals."""
 
 from __future__ import annotations
 
@@ -12,16 +13,17 @@ import skops.io as sio
 from sklearn.linear_model import LogisticRegression
 from test_classify import random_segments, synthetic_table
 
-from rough_map.classify import TerrainModel
-from rough_map.errors import ModelError
-from rough_map.io.model import (
+from rough_map.classify import (
     TRUSTED_TYPES,
+    TerrainModel,
     load_terrain_model,
     model_paths,
     read_card,
     save_terrain_model,
     sha256_file,
 )
+from rough_map.errors import ModelError
+from rough_map.filter import make_terrain_model
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -47,7 +49,7 @@ def tables():
 
 @pytest.fixture(scope="module")
 def model(tables) -> TerrainModel:
-    return TerrainModel(cv=2, evidence_per_m=1.5, level_jitter=0.0).fit(tables[0])
+    return make_terrain_model(cv=2, evidence_per_m=1.5, level_jitter=0.0).fit(tables[0])
 
 
 @pytest.fixture
@@ -90,6 +92,32 @@ def test_card(model, saved) -> None:
 def test_only_trusted_types_in_the_file(saved) -> None:
     untrusted = sio.get_untrusted_types(file=saved[0])
     assert set(untrusted) <= set(TRUSTED_TYPES)
+    # the components are in the file: the path filter and the defect detector
+    assert {
+        "rough_map.filter.path_filter.PathFilter",
+        "rough_map.filter.defects.IsolatedSpikes",
+        "rough_map.classify.model.TerrainModel",
+    } <= set(untrusted)
+
+
+def test_trusted_types_name_the_classes_where_they_are_defined() -> None:
+    import importlib
+
+    for name in TRUSTED_TYPES:
+        module, _, attr = name.rpartition(".")
+        cls = getattr(importlib.import_module(module), attr)
+        assert f"{cls.__module__}.{cls.__qualname__}" == name
+
+
+def test_model_without_components_round_trips(tables, tmp_path) -> None:
+    """path_filter=None: no smoothing; the card says so."""
+    plain = TerrainModel(cv=2, level_jitter=0.0).fit(tables[0])
+    model_file, card_file = save_terrain_model(plain, tmp_path / "plain")
+    loaded = load_terrain_model(model_file)
+    pred = loaded.predict(tables[1])
+    np.testing.assert_array_equal(pred.filtered_class, pred.raw_class)
+    card = read_card(card_file)
+    assert card["filter"]["evidence_per_m"] is None and card["filter"]["defect_ratio"] is None
 
 
 def test_model_paths() -> None:

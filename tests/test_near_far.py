@@ -3,24 +3,34 @@
 from __future__ import annotations
 
 import copy
+import functools
 import math
 
 import cv2
 import numpy as np
 import pytest
+from sklearn.base import clone
+from sklearn.utils.estimator_checks import (
+    check_do_not_raise_errors_in_init_or_set_params,
+    check_get_params_invariance,
+    check_no_attributes_set_in_init,
+    check_set_params,
+    estimator_checks_generator,
+)
 
 from rough_map.config import StereoCalibration, TraverseSpec
 from rough_map.errors import InputError, NotFittedError
+from rough_map.evaluation.near_far import area_coverage, far_field_accuracy, world_class
 from rough_map.geometry import ground_to_pixel, pixel_to_ground, pose_matrix
 from rough_map.io.traverse import Traverse, save_traverse
 from rough_map.map.near_far import (
     FarPrediction,
+    LooksClassifier,
     NearToFar,
-    area_coverage,
-    far_field_accuracy,
     run_traverse,
     tile_features,
 )
+from rough_map.patch import Extraction, PatchSpec
 from rough_map.simulate.world import CLASS_NAMES, build_world, course_layout, drive
 from rough_map.types import HeightField
 
@@ -28,6 +38,8 @@ from rough_map.types import HeightField
 #: 8 px then cover the ground of the full rig's 32 px tiles.
 SCALE = 0.25
 TILE = 8
+#: The near field: the default extraction's patch (0.552-1.448 m ahead, 0.896 m wide).
+PATCH = Extraction()
 
 
 def scaled_calibration(scale: float = SCALE) -> StereoCalibration:
@@ -88,7 +100,7 @@ def course(tmp_path_factory: pytest.TempPathFactory) -> tuple[Traverse, HeightFi
 @pytest.fixture(scope="module")
 def predictions(course: tuple[Traverse, HeightField]) -> list[FarPrediction]:
     traverse, _ = course
-    return run_traverse(traverse, traverse.labels(), tile_px=TILE)
+    return run_traverse(traverse, traverse.labels(), patch=PATCH, classes=CLASS_NAMES, tile_px=TILE)
 
 
 def read(traverse: Traverse, i: int) -> np.ndarray:
@@ -181,7 +193,7 @@ def test_tile_features_shape_and_colour() -> None:
 def test_learns_looks_and_flags_unfamiliar_ones() -> None:
     calib = scaled_calibration()
     pose = np.zeros(6)
-    model = NearToFar(CLASS_NAMES, tile_px=TILE, min_confidence=0.0)
+    model = NearToFar(CLASS_NAMES, PATCH, tile_px=TILE, min_confidence=0.0)
     for seed in range(3):
         model.update(_flat_image(calib, GREY, seed), calib, pose, "concrete")
     grey = model.predict(_flat_image(calib, GREY, 10), calib, pose)
@@ -210,7 +222,7 @@ def test_learns_looks_and_flags_unfamiliar_ones() -> None:
 def test_predictions_are_ground_cells_beyond_the_near_field() -> None:
     calib = scaled_calibration()
     pose = np.array([10.0, 5.0, 0.0, 0.0, 0.0, math.pi / 2])  # heading north (+y)
-    model = NearToFar(CLASS_NAMES, tile_px=TILE, max_range=3.0, ground_step=0.2)
+    model = NearToFar(CLASS_NAMES, PATCH, tile_px=TILE, max_range=3.0, ground_step=0.2)
     for seed in range(2):
         model.update(_flat_image(calib, GREY, seed), calib, pose, "concrete")
     pred = model.predict(_flat_image(calib, GREY, 5), calib, pose, t=1.5, frame=7)
@@ -233,6 +245,143 @@ def test_predictions_are_ground_cells_beyond_the_near_field() -> None:
     )
 
 
+def test_the_near_field_is_the_patch_of_the_labels() -> None:
+    """Labels of a patch 1.5 m ahead teach the tiles that see 1.052-1.948 m, and the ground
+    nearer than that (the default patch) becomes far field."""
+    calib = scaled_calibration()
+    pose = np.zeros(6)
+    patch = PatchSpec(ahead=1.5)
+    model = NearToFar(CLASS_NAMES, patch, tile_px=TILE, max_range=3.0)
+    for seed in range(2):
+        model.update(_flat_image(calib, GREY, seed), calib, pose, "concrete")
+    (x0, x1), (y0, y1) = model.near_field_.ahead, model.near_field_.lateral
+    assert (x0, x1) == Extraction(patch=patch).near_range == pytest.approx((1.052, 1.948))
+    assert (y0, y1) == pytest.approx((-0.448, 0.448))
+    pred = model.predict(_flat_image(calib, GREY, 5), calib, pose)
+    across = (pred.lateral >= y0) & (pred.lateral <= y1)
+    assert not np.any(across & (pred.ahead >= x0) & (pred.ahead <= x1))
+    assert np.any(across & (pred.ahead > 0.552) & (pred.ahead < 1.0))
+
+
+# ------------------------------------------------------------------------------ scikit-learn
+
+
+def test_near_to_far_is_a_clonable_estimator() -> None:
+    """The constructor stores its arguments as given (checked at the first update); clone
+    gives an unfitted copy with the same parameters."""
+    model = NearToFar(CLASS_NAMES, PATCH, tile_px=32.7)
+    assert model.tile_px == 32.7 and model.get_params()["patch"] is PATCH
+    for check in (
+        check_no_attributes_set_in_init,
+        check_get_params_invariance,
+        check_set_params,
+        check_do_not_raise_errors_in_init_or_set_params,
+    ):
+        check("NearToFar", model)
+    calib = scaled_calibration()
+    fitted = NearToFar(CLASS_NAMES, PATCH, tile_px=TILE)
+    fitted.update(_flat_image(calib, GREY, 0), calib, np.zeros(6), "concrete")
+    assert fitted.classes_ == tuple(CLASS_NAMES) and fitted.n_updates_ == 1
+    assert fitted.near_field_.ahead == PATCH.near_range
+    copied = clone(fitted)
+    assert copied.get_params() == fitted.get_params()
+    assert not hasattr(copied, "looks_") and not hasattr(copied, "classes_")
+    with pytest.raises(NotFittedError, match="update"):
+        copied.predict(_flat_image(calib, GREY, 1), calib, np.zeros(6))
+
+
+def _shipped_appearance() -> LooksClassifier:
+    """The appearance model in the configuration NearToFar ships with."""
+    params = NearToFar(CLASS_NAMES, PATCH).get_params()
+    return LooksClassifier(**{k: params[k] for k in LooksClassifier().get_params()})
+
+
+#: scikit-learn checks that cannot pass in the shipped configuration, and why.
+_SIX_FEATURES = (
+    "the shipped min_std has one floor per tile feature, so X must have the 6 tile "
+    "features; this check's data have another number"
+)
+_EXPECTED_FAILURES = dict.fromkeys(
+    (
+        "check_classifier_data_not_an_array",
+        "check_classifiers_classes",
+        "check_classifiers_one_label",
+        "check_dict_unchanged",
+        "check_dont_overwrite_parameters",
+        "check_dtype_object",
+        "check_estimators_dtypes",
+        "check_estimators_fit_returns_self",
+        "check_estimators_nan_inf",
+        "check_estimators_overwrite_params",
+        "check_estimators_partial_fit_n_features",
+        "check_estimators_pickle",
+        "check_f_contiguous_array_estimator",
+        "check_fit2d_1feature",
+        "check_fit2d_1sample",
+        "check_fit2d_predict1d",
+        "check_fit_check_is_fitted",
+        "check_fit_idempotent",
+        "check_fit_score_takes_y",
+        "check_methods_sample_order_invariance",
+        "check_methods_subset_invariance",
+        "check_n_features_in",
+        "check_n_features_in_after_fitting",
+        "check_pipeline_consistency",
+        "check_positive_only_tag_during_fit",
+        "check_readonly_memmap_input",
+        "check_supervised_y_2d",
+    ),
+    _SIX_FEATURES,
+)
+_EXPECTED_FAILURES["check_classifiers_train"] = (
+    _SIX_FEATURES + "; and one fit is one batch per class, while a look is used only after "
+    "min_support=2 batches, so a single fit predicts uniformly"
+)
+
+
+def _check_params(configuration: str, estimator: LooksClassifier) -> list:
+    out = []
+    for est, check in estimator_checks_generator(estimator, legacy=True, mark=None):
+        func = check.func if isinstance(check, functools.partial) else check
+        keywords = check.keywords if isinstance(check, functools.partial) else {}
+        name = func.__name__
+        label = name + "".join(f"-{k}={v}" for k, v in keywords.items() if k != "estimator")
+        reason = _EXPECTED_FAILURES.get(name) if configuration == "shipped" else None
+        marks = [pytest.mark.xfail(strict=True, reason=reason)] if reason else []
+        out.append(pytest.param(est, check, id=f"{configuration}-{label}", marks=marks))
+    return out
+
+
+@pytest.mark.parametrize(
+    ("estimator", "check"),
+    _check_params("shipped", _shipped_appearance())
+    # One floor for all features and looks in use after one batch: the whole contract.
+    + _check_params("general", LooksClassifier(min_std=0.1, min_support=1)),
+)
+def test_appearance_model_follows_scikit_learn_conventions(estimator, check) -> None:
+    check(estimator)
+
+
+def test_appearance_model_learns_batches() -> None:
+    """Two batches per class put their looks in use; a third, far-off colour is unknown."""
+    rng = np.random.default_rng(0)
+    centres = {
+        "grey": np.array([60.0, 0.0, 0.0, 1.0, -1.0, -1.0]),
+        "brown": np.array([55.0, 5.0, 15.0, 1.0, -1.0, -1.0]),
+    }
+    model = LooksClassifier()
+    for _ in range(2):
+        x = np.concatenate([c + rng.normal(0, 0.3, (50, 6)) for c in centres.values()])
+        model.partial_fit(x, np.repeat(list(centres), 50), classes=["brown", "grey"])
+    assert model.n_updates_ == 4 and len(model.looks_.cls) == 2
+    test = np.stack([centres["grey"], centres["brown"], [30.0, -20.0, 40.0, 1.0, -1.0, -1.0]])
+    assert model.predict(test[:2]).tolist() == ["grey", "brown"]
+    assert np.allclose(model.predict_proba(test[2:]), 0.5)
+    assert model.familiarity(test[2:])[0] < 1e-6 < model.familiarity(test[:1])[0]
+    with pytest.raises(InputError, match="min_std must be a positive number or 6"):
+        LooksClassifier(min_std=(1.0, 2.0)).fit(test, ["a", "b", "a"])
+
+
 # ------------------------------------------------------------------------------ simulated course
 
 
@@ -240,18 +389,16 @@ def test_online_model_improves_as_frames_arrive(course: tuple[Traverse, HeightFi
     """Frame 4 sees concrete, dirt road and gravel; score it with the model after k frames:
     the share of its cells classified confidently and right, and the mean probability of the
     true class, grow as concrete (frames 0-3), dirt road (4-7) and gravel (8-) are learnt."""
-    from rough_map.map.near_far import _world_class
-
     traverse, world = course
     calib = traverse.spec.calibration
     image, pose = read(traverse, 4), traverse.frames[4].pose
-    model = NearToFar(CLASS_NAMES, tile_px=TILE, recall=False, min_confidence=0.0)
+    model = NearToFar(CLASS_NAMES, PATCH, tile_px=TILE, recall=False, min_confidence=0.0)
     good, p_true = [], []
     for i in range(len(traverse) - 1):
         model.update(read(traverse, i), calib, traverse.frames[i].pose, traverse.frames[i].label)
         if i in (1, 5, len(traverse) - 2):
             pred = copy.deepcopy(model).predict(image, calib, pose)
-            truth = _world_class(world, pred.x, pred.y)
+            truth = world_class(world, pred.x, pred.y)
             good.append(np.mean((pred.confidence >= 0.6) & (pred.label_index == truth)))
             p_true.append(pred.proba[np.arange(len(pred)), truth].mean())
     assert good[0] < good[1] < good[2]
@@ -269,7 +416,7 @@ def test_far_field_accuracy_and_area(
     assert table.edges.tolist() == [0, 1.5, 2, 3, 4, 5, 6, 8]
     assert table.n[:4].sum() > 1000
     assert table.overall(max_distance=4.0) >= 0.8
-    coverage = area_coverage(predictions, traverse.poses(), world, threshold=0.6)
+    coverage = area_coverage(predictions, traverse.poses(), world, PATCH, threshold=0.6)
     assert coverage.ratio >= 3.0
     assert coverage.accuracy >= 0.8
     assert "| 2-3 |" in table.to_text()
@@ -277,10 +424,12 @@ def test_far_field_accuracy_and_area(
 
 def test_unknown_near_labels_are_not_learnt(course: tuple[Traverse, HeightField]) -> None:
     traverse, _ = course
-    assert run_traverse(traverse, [""] * len(traverse), tile_px=TILE) == []
+    assert run_traverse(traverse, [""] * len(traverse), patch=PATCH, tile_px=TILE) == []
     labels: list[str | None] = [None] * len(traverse)
     labels[0] = "concrete"
-    predictions = run_traverse(traverse, np.array(labels, dtype=object), tile_px=TILE)
+    predictions = run_traverse(
+        traverse, np.array(labels, dtype=object), patch=PATCH, classes=CLASS_NAMES, tile_px=TILE
+    )
     assert len(predictions) == len(traverse) - 1
 
 
@@ -290,8 +439,8 @@ def test_no_peeking(course: tuple[Traverse, HeightField]) -> None:
     labels = traverse.labels()
     k = 6
     changed = labels[:k] + ["ploughed_soil"] * (len(labels) - k)
-    a = run_traverse(traverse, labels, tile_px=TILE, every=2)
-    b = run_traverse(traverse, changed, tile_px=TILE, every=2)
+    a = run_traverse(traverse, labels, patch=PATCH, classes=CLASS_NAMES, tile_px=TILE, every=2)
+    b = run_traverse(traverse, changed, patch=PATCH, classes=CLASS_NAMES, tile_px=TILE, every=2)
     for pa, pb in zip(a, b, strict=True):
         if pa.frame is not None and pa.frame <= k:
             assert np.array_equal(pa.proba, pb.proba)
@@ -304,7 +453,7 @@ def test_bad_input_raises_input_error(course: tuple[Traverse, HeightField]) -> N
     traverse, world = course
     calib = scaled_calibration()
     image = _flat_image(calib, GREY, 0)
-    model = NearToFar(CLASS_NAMES, tile_px=TILE)
+    model = NearToFar(CLASS_NAMES, PATCH, tile_px=TILE)
     with pytest.raises(NotFittedError, match="update"):
         model.predict(image, calib, np.zeros(6))
     with pytest.raises(InputError, match="calibration is for 320x240"):
@@ -319,12 +468,25 @@ def test_bad_input_raises_input_error(course: tuple[Traverse, HeightField]) -> N
         model.update(image[..., 0], calib, np.zeros(6), "concrete")
     with pytest.raises(InputError, match="pose"):
         model.update(image, calib, np.zeros(5), "concrete")
+    # The parameters are checked at the first update (the constructor only stores them).
     with pytest.raises(InputError, match="max_range"):
-        NearToFar(CLASS_NAMES, max_range=1.0)
+        NearToFar(CLASS_NAMES, PATCH, max_range=1.0).update(image, calib, np.zeros(6), 0)
     with pytest.raises(InputError, match="distinct"):
-        NearToFar(["a", "a"])
+        NearToFar(["a", "a"], PATCH).update(image, calib, np.zeros(6), 0)
+    with pytest.raises(InputError, match="tile_px must be an integer"):
+        NearToFar(CLASS_NAMES, PATCH, tile_px=8.5).update(image, calib, np.zeros(6), 0)
+    with pytest.raises(InputError, match="min_std must be"):
+        NearToFar(CLASS_NAMES, PATCH, tile_px=TILE, min_std=(1.0,)).update(
+            image, calib, np.zeros(6), 0
+        )
+    with pytest.raises(InputError, match="patch must be a PatchSpec"):
+        NearToFar(CLASS_NAMES, (0.55, 1.45)).update(image, calib, np.zeros(6), 0)  # type: ignore[arg-type]
     with pytest.raises(InputError, match="near_labels has 2 entries"):
-        run_traverse(traverse, ["concrete", "gravel"])
+        run_traverse(traverse, ["concrete", "gravel"], patch=PATCH)
+    with pytest.raises(InputError, match="needs the patch"):
+        run_traverse(traverse, traverse.labels())
+    with pytest.raises(InputError, match="need classes"):
+        run_traverse(traverse, [0] * len(traverse), patch=PATCH)
     with pytest.raises(InputError, match="bins"):
         far_field_accuracy([], world, bins=(2.0, 1.0))
     with pytest.raises(InputError, match="proba"):

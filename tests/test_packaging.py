@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 
 from rough_map.classify import RoughnessLevels, load_roughness_levels
-from rough_map.io.model import load_terrain_model, read_card
+from rough_map.classify.persistence import load_terrain_model, read_card
 from rough_map.resources import config_file, model_base, shipped_models
 
 ROOT = Path(__file__).resolve().parents[1]

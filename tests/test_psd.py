@@ -8,6 +8,7 @@ from scipy import signal
 
 from rough_map import iso8608, psd
 from rough_map.errors import InputError, PatchError
+from rough_map.psd import _leakage, _regression, _spectra
 
 B = 0.008
 N = 112
@@ -59,7 +60,7 @@ def test_round_trip_surfaces(cls, w):
             for i in range(20)
         ]
     )
-    est = psd.patch_roughness(patches, B)
+    est = psd.patch_roughness_batch(patches, B)
     assert abs(np.median([math.log(e.R / phi0) for e in est])) < 0.15
     assert abs(np.median([e.w - w for e in est])) < 0.05
 
@@ -71,7 +72,7 @@ def test_round_trip_profiles(cls, w):
     h = np.stack(
         [iso8608.synthesize_profile(N, B, phi0, w, n_profiles=N, seed=s) for s in range(10)]
     )
-    est = psd.patch_roughness(h, B)
+    est = psd.patch_roughness_batch(h, B)
     assert abs(np.median([math.log(e.R / phi0) for e in est])) < 0.1
     assert abs(np.median([e.w - w for e in est])) < 0.04
 
@@ -80,15 +81,15 @@ def test_paper_method_is_biased_low_by_about_gamma():
     h = np.stack(
         [iso8608.synthesize_profile(N, B, 64e-6, -2.0, n_profiles=N, seed=s) for s in range(10)]
     )
-    paper = psd.patch_roughness(h, B, method="paper")
-    unbiased = psd.patch_roughness(h, B)
+    paper = psd.patch_roughness_batch(h, B, method="paper")
+    unbiased = psd.patch_roughness_batch(h, B)
     gap = np.median([math.log(u.R / p.R) for u, p in zip(unbiased, paper, strict=True)])
     assert 0.35 < gap < 0.75  # exp(-gamma): 44 % low, plus the window/detrend offsets
 
 
 def test_single_and_batch_agree():
     h = np.stack([iso8608.synthesize_surface((N, N), B, "E", -2.3, seed=s) for s in range(3)])
-    batch = psd.patch_roughness(h, B)
+    batch = psd.patch_roughness_batch(h, B)
     for one, patch in zip(batch, h, strict=True):
         single = psd.patch_roughness(patch, B)
         assert single.R == pytest.approx(one.R, rel=1e-9)
@@ -110,7 +111,7 @@ def test_welch_segments_are_unbiased_too():
     h = np.stack(
         [iso8608.synthesize_profile(2 * N, B, 64e-6, -2.4, n_profiles=N, seed=s) for s in range(10)]
     )
-    est = psd.patch_roughness(h, B, nperseg=N)
+    est = psd.patch_roughness_batch(h, B, nperseg=N)
     assert abs(np.median([math.log(e.R / 64e-6) for e in est])) < 0.15
     assert abs(np.median([e.w + 2.4 for e in est])) < 0.06
 
@@ -143,8 +144,8 @@ def test_noise_floor_subtraction_moves_back_to_the_truth():
     sigma = 1.0e-4  # noise of a cell mean, m
     noisy = clean + rng.normal(0, sigma, clean.shape)
     floor = sigma**2 * B / math.pi
-    raw = psd.patch_roughness(noisy, B)
-    fixed = psd.patch_roughness(noisy, B, noise_psd=floor, subtract_noise=True)
+    raw = psd.patch_roughness_batch(noisy, B)
+    fixed = psd.patch_roughness_batch(noisy, B, noise_psd=floor, subtract_noise=True)
     err_raw = abs(np.median([math.log(e.R / phi0) for e in raw]))
     err_fixed = abs(np.median([math.log(e.R / phi0) for e in fixed]))
     assert err_fixed < err_raw
@@ -227,8 +228,50 @@ def test_bad_options():
 
 
 def test_shipped_tables_are_up_to_date():
-    with np.load(psd._SHIPPED_TABLES) as data:
+    with np.load(_leakage.SHIPPED_TABLES) as data:
         for g in psd.GRIDDINGS:
             np.testing.assert_allclose(
-                data[f"hann_112_{g}"], psd._compute_leakage_table(112, "hann", g), atol=1e-9
+                data[f"hann_112_{g}"], _leakage.compute_leakage_table(112, "hann", g), atol=1e-9
             )
+
+
+# --------------------------------------------------------------------------- one call, one type
+
+
+def test_a_stack_goes_to_the_batch_function():
+    h = np.stack([iso8608.synthesize_surface((N, N), B, "C", seed=s) for s in range(2)])
+    assert psd.patch_roughness_batch(h[:0], B) == []
+    with pytest.raises(InputError, match="stack"):
+        psd.patch_roughness_batch(h[0], B)
+    with pytest.raises(InputError, match="empty"):
+        psd.patch_roughness_batch(np.zeros((2, 5, 0)), B)
+    with pytest.raises(TypeError, match="windw"):
+        psd.patch_roughness_batch(h, B, windw="hann")
+    with pytest.raises(InputError, match="method"):
+        psd.patch_roughness_batch(h, B, method="magic")
+    with pytest.raises(InputError, match="use patch_roughness_batch for a stack"):
+        psd.patch_roughness(h, B)
+    assert [r.R for r in psd.patch_roughness_batch(h, B)] == [
+        psd.patch_roughness(x, B).R for x in h
+    ]
+
+
+# --------------------------------------------------------------------------- cached plans
+
+
+def test_cached_plans_cannot_be_changed():
+    """The lru_cache'd plans and tables are shared by every later call: read-only."""
+    h = iso8608.synthesize_surface((N, N), B, "E", -2.3, seed=4)
+    before = psd.patch_roughness(h, B)
+    win, basis, _ = _spectra.hann_plan(N, "hann")
+    plan = _regression.fit_plan(N // 2, N, "unbiased", B, 1.0, "hann", "point")
+    arrays = [win, basis, _leakage.leakage_table(N, "hann", "point"), _leakage.W_GRID]
+    arrays += [getattr(plan, f) for f in ("mask", "x", "xc", "avg", "proj", "leak_x", "leak_a")]
+    for a in arrays:
+        assert not a.flags.writeable
+        with pytest.raises(ValueError, match="read-only"):
+            a[..., 0] = 0
+    with pytest.raises(ValueError, match="read-only"):
+        before.fit_mask[0] = not before.fit_mask[0]  # a view of the plan's mask
+    again = psd.patch_roughness(h, B)
+    assert (again.R, again.w) == (before.R, before.w)

@@ -164,9 +164,9 @@ def test_report_in_a_browser(report):
 @needs_chromium
 def test_a_wide_table_scrolls_in_its_own_box(report):
     """40 columns of numbers: the table scrolls, the page does not."""
-    from rough_map.export.report import _table
+    from rough_map.export.tables import table
 
-    wide = _table([f"column {k} [m³/rad]" for k in range(40)], [list(np.arange(40) * 1e-4)])
+    wide = table([f"column {k} [m³/rad]" for k in range(40)], [list(np.arange(40) * 1e-4)])
     text = report.read_text(encoding="utf-8").replace("</body>", wide + "</body>")
     page = report.with_name("wide.html")
     page.write_text(text, encoding="utf-8")

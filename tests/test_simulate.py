@@ -9,7 +9,8 @@ import pytest
 from rough_map.cli.main import main
 from rough_map.features import read_features, traverse_features, write_features
 from rough_map.io.traverse import load_traverse
-from rough_map.simulate.course import SensorSpec, load_world, sense_cloud, simulate
+from rough_map.io.truth import load_world
+from rough_map.simulate.course import SensorSpec, sense_cloud, simulate
 from rough_map.simulate.world import build_world, course_layout, drive
 
 SPARSE = SensorSpec(points_per_cell=8.0)
@@ -75,7 +76,8 @@ def test_default_model_maps_the_mixed_course(mixed, mixed_features):
     """Issue 5: >= 0.9 class accuracy over the near-field map cells on simulated truth,
     with the manhole flagged as an isolated defect rather than mapped as rough ground."""
     from rough_map.cli.map import default_model
-    from rough_map.workflow import analyse, map_accuracy
+    from rough_map.evaluation.truth import map_accuracy
+    from rough_map.workflow import analyse
 
     trav = load_traverse(mixed)
     result = analyse(trav, default_model(), features=mixed_features, near_far=False)
@@ -335,7 +337,7 @@ def test_npz_cloud_reader(tmp_path):
 def test_world_truth_is_compact_and_round_trips(tmp_path):
     """Heights as int16 steps of relief / 65534 (at most 10 um), the class map deflated;
     a wider relief stays float32, and files of the older float32 layout still load."""
-    from rough_map.simulate.course import HEIGHT_STEP, save_world
+    from rough_map.io.truth import HEIGHT_STEP, save_world
     from rough_map.types import HeightField
 
     rng = np.random.default_rng(0)

@@ -17,12 +17,9 @@ from rough_map.errors import FileFormatError, InputError, SchemaError
 from rough_map.geometry import rotation_matrix
 from rough_map.simulate.textures import DEFAULT_TEXTURES, value_noise
 from rough_map.stereo import (
-    PATCH_AHEAD,
-    PATCH_SIZE,
     SGBMConfig,
     StereoCalibration,
     StereoConfig,
-    _plane_from_disparity,
     compute_disparity,
     crop_to_patch,
     disparity_to_points,
@@ -32,6 +29,7 @@ from rough_map.stereo import (
     level_plane,
     patch_rows,
     patch_window,
+    plane_from_disparity,
     read_image,
     statistical_outlier_filter,
     statistical_outlier_mask,
@@ -40,6 +38,8 @@ from rough_map.stereo import (
 )
 
 CONFIGS = Path(__file__).parents[1] / "configs"
+#: The paper's patch: 0.896 m square, centre 1 m ahead.
+PATCH = patch.PatchSpec()
 
 
 @pytest.fixture(scope="module")
@@ -76,7 +76,7 @@ def test_xb3_default_sees_the_patch(calib):
     v = calib.fy * cam[1] / cam[2] + calib.cy
     d = calib.focal_baseline / cam[2]
     assert r0 < v < r1 and min_d < d < min_d + num_d
-    assert patch_rows(calib) == window.rows
+    assert patch_rows(calib, PATCH) == window.rows
     # The residual to the ground's disparity covers +-0.15 m of height: about +-30 px.
     lo, num = window.residual
     assert lo < 0 < lo + num and num <= 96
@@ -108,7 +108,7 @@ def test_ground_disparity_of_a_tilted_plane(calib):
             ray[2] - plane[0] * ray[0] - plane[1] * ray[1]
         )
         assert a * u + b * v + c == pytest.approx(calib.focal_baseline / depth)
-    np.testing.assert_allclose(_plane_from_disparity(calib, (a, b, c)), plane, atol=1e-12)
+    np.testing.assert_allclose(plane_from_disparity(calib, (a, b, c)), plane, atol=1e-12)
     assert ground_disparity(calib, 0.01) == pytest.approx(
         ground_disparity(calib, plane=(0, 0, 0.01))
     )
@@ -137,7 +137,7 @@ def test_patch_window_around_a_plane(calib):
     lo, num = window.residual
     # Box corners (patch + margin, heights -0.02 and +0.04 above the plane): their residual
     # disparities lie inside the range, >= 2 px from both ends, with the slack shared.
-    half = PATCH_SIZE / 2 + 0.05
+    half = PATCH.size / 2 + 0.05
     x, y, dz = np.meshgrid([1 - half, 1 + half], [-half, half], [-0.02, 0.04])
     p = np.column_stack([x.ravel(), y.ravel(), (0.05 * x + 0.03 + dz).ravel()])
     transform = calib.T_vehicle_camera
@@ -159,8 +159,8 @@ def test_patch_window_around_a_plane(calib):
     assert tall.rows[0] >= 0 and tall.rows[1] <= calib.height
 
 
-def test_patch_defaults_match_the_patch_module():
-    assert (PATCH_AHEAD, PATCH_SIZE) == (patch.DEFAULT_AHEAD, patch.DEFAULT_SIZE)
+def test_the_default_patch_is_the_default_patch_spec(calib):
+    assert patch_window(calib) == patch_window(calib, patch.PatchSpec())
 
 
 @pytest.mark.parametrize("suffix", [".yaml", ".json"])
@@ -238,16 +238,19 @@ def test_to_vehicle_puts_the_camera_where_the_calibration_says(calib):
 
 def test_patch_outside_the_images_is_an_error(calib):
     with pytest.raises(InputError, match="not inside the left image"):
-        patch_window(calib, lateral=1.5)
+        patch_window(calib, patch.PatchSpec(lateral=1.5))
     with pytest.raises(InputError, match="behind"):
-        patch_window(calib, ahead=-1.0)
+        patch_window(calib, patch.PatchSpec(ahead=-1.0))
 
 
 def test_crop_to_patch():
     pts = np.array([[1.0, 0.0, 0.0], [1.0, 0.6, 0.0], [1.0, 0.0, 0.3], [0.4, 0.0, 0.0]])
-    np.testing.assert_array_equal(crop_to_patch(pts, margin=0.05), pts[[0, 2]])
-    np.testing.assert_array_equal(crop_to_patch(pts, margin=0.05, height_tolerance=0.15), pts[[0]])
-    np.testing.assert_array_equal(crop_to_patch(pts, margin=0.05, lateral=0.6), pts[[1]])
+    np.testing.assert_array_equal(crop_to_patch(pts, PATCH, margin=0.05), pts[[0, 2]])
+    np.testing.assert_array_equal(
+        crop_to_patch(pts, PATCH, margin=0.05, height_tolerance=0.15), pts[[0]]
+    )
+    beside = patch.PatchSpec(lateral=0.6)
+    np.testing.assert_array_equal(crop_to_patch(pts, beside, margin=0.05), pts[[1]])
 
 
 # --------------------------------------------------------------------------------------------
@@ -413,15 +416,15 @@ def flat_pair(calib):
         classes=np.zeros((750, 1000), int),
         class_names=("gravel",),
     )
-    left, right, _ = render_stereo(world, (0, 0, 0, 0, 0, 0), calib, rows=patch_rows(calib))
+    left, right, _ = render_stereo(world, (0, 0, 0, 0, 0, 0), calib, rows=patch_rows(calib, PATCH))
     return left, right
 
 
 def test_stereo_to_cloud_patch_path(calib, flat_pair):
     pts = stereo_to_cloud(*flat_pair, calib)
-    half = PATCH_SIZE / 2 + StereoConfig().crop_margin
+    half = PATCH.size / 2 + StereoConfig().crop_margin
     assert len(pts) > 100_000
-    assert np.abs(pts[:, 0] - PATCH_AHEAD).max() <= half + 1e-9
+    assert np.abs(pts[:, 0] - PATCH.ahead).max() <= half + 1e-9
     assert np.abs(pts[:, 1]).max() <= half + 1e-9
     assert np.median(np.abs(pts[:, 2])) < 0.002
 
@@ -497,8 +500,8 @@ def test_fit_ground_finds_the_tilted_ground(calib, tilted_pair):
     """The coarse pass finds the ground 6-12 cm off the vehicle's z = 0 to a fraction of a mm,
     without being told the tilt; the patch path then reconstructs all of it."""
     truth = level_plane(ROLL, PITCH)
-    plane, (lo, hi) = fit_ground(*tilted_pair, calib)
-    for x in (PATCH_AHEAD - 0.45, PATCH_AHEAD + 0.45):
+    plane, (lo, hi) = fit_ground(*tilted_pair, calib, patch=PATCH)
+    for x in (PATCH.ahead - 0.45, PATCH.ahead + 0.45):
         for y in (-0.45, 0.45):
             dz = (plane[0] - truth[0]) * x + (plane[1] - truth[1]) * y + plane[2] - truth[2]
             assert abs(dz) < 0.0005
@@ -526,7 +529,7 @@ def _truth_cloud(world, step: float = 0.002) -> np.ndarray:
     """Dense, noise-free points of the true surface over the patch and its margin (the vehicle
     is at the world origin, level)."""
     g = np.arange(-0.5, 0.5 + 1e-9, step)
-    x, y = np.meshgrid(PATCH_AHEAD + g, g)
+    x, y = np.meshgrid(PATCH.ahead + g, g)
     return np.column_stack([x.ravel(), y.ravel(), world.sample(x.ravel(), y.ravel())])
 
 
@@ -568,17 +571,67 @@ def test_stereo_features_stay_near_the_truth(surface_features):
     assert abs(stereo["w"] - truth["w"]) < 0.3
 
 
+#: Surfaces on which stereo does not yet meet R +-25 % / w +-0.1 (issue 13's work).
+_STEREO_NOT_YET = ("compact_soil", "ploughed_soil", "dirt_road")
+
+
 @pytest.mark.slow
-@pytest.mark.xfail(
-    strict=False,
-    reason="not met yet, before or after the coarse pass: the stereo error is as large as "
-    "the terrain's PSD at 120-393 rad/m (see the Limits of rough_map.stereo)",
-)
-def test_stereo_features_agree_with_the_true_surface(surface_features):
+def test_stereo_features_agree_with_the_true_surface(surface_features, request):
     """The issue's acceptance: features from stereo-reconstructed clouds agree with features
     from the true height field, R within +-25 % and w within +-0.1, on the non-flat classes
     (the rendered simulator surfaces, against a dense noise-free cloud of the true surface at
-    the same pose)."""
-    _, stereo, truth = surface_features
+    the same pose). Met on gravel; a strict xfail on the others, so that meeting it there
+    fails until the mark is removed."""
+    name, stereo, truth = surface_features
+    if name in _STEREO_NOT_YET:
+        request.applymarker(
+            pytest.mark.xfail(
+                strict=True,
+                reason="not met yet: the stereo error is as large as the terrain's PSD at "
+                "120-393 rad/m (see the Limits of rough_map.stereo)",
+            )
+        )
     assert 0.75 <= stereo["R"] / truth["R"] <= 1.25
     assert abs(stereo["w"] - truth["w"]) <= 0.1
+
+
+# --------------------------------------------------------------------------------------------
+# The package's names, the patch argument and the robust plane fit
+
+
+def test_one_calibration_and_one_image_reader():
+    from rough_map import config
+    from rough_map.io import images
+
+    assert StereoCalibration is config.StereoCalibration
+    assert read_image is images.read_image
+
+
+def test_cloud_covers_the_given_patch(calib, flat_pair):
+    """stereo_to_cloud returns the points over the PatchSpec it is given (plus the margin)."""
+    spec = patch.PatchSpec(ahead=1.05, size=0.8, lateral=0.02)
+    by_spec = stereo_to_cloud(*flat_pair, calib, patch=spec)
+    half = 0.4 + StereoConfig().crop_margin
+    assert np.abs(by_spec[:, 0] - 1.05).max() <= half + 1e-6
+    assert np.abs(by_spec[:, 1] - 0.02).max() <= half + 1e-6
+
+
+def test_fit_plane_trims_outliers():
+    """Known plane under 1 mm noise and 5 % outliers; sigma is 1.4826 x the MAD exactly."""
+    from scipy.stats import median_abs_deviation
+
+    from rough_map.stereo.ground import fit_plane
+    from rough_map.stereo.outliers import MAD_TO_SIGMA
+
+    rng = np.random.default_rng(4)
+    n = 20_000
+    x, y = rng.uniform(0.5, 1.5, n), rng.uniform(-0.5, 0.5, n)
+    z = 0.02 * x - 0.01 * y + 0.003 + rng.normal(0, 0.001, n)
+    bad = rng.choice(n, n // 20, replace=False)
+    z[bad] += rng.choice([-1, 1], len(bad)) * rng.uniform(0.02, 0.1, len(bad))
+    plane, heights, inliers = fit_plane(np.column_stack([x, y, z]), (1.0, 0.0))
+    np.testing.assert_allclose(plane, (0.02, -0.01, 0.003), atol=1e-4)
+    assert not inliers[bad].any() and inliers.mean() > 0.94
+    np.testing.assert_allclose(heights, z - (plane[0] * x + plane[1] * y + plane[2]))
+    r = heights[inliers]
+    assert MAD_TO_SIGMA * median_abs_deviation(r) == 1.4826 * np.median(np.abs(r - np.median(r)))

@@ -8,7 +8,7 @@ import pytest
 from rough_map import terrain
 from rough_map.errors import InputError
 from rough_map.iso8608 import iso_class
-from rough_map.psd import patch_roughness
+from rough_map.psd import patch_roughness, patch_roughness_batch
 
 N, B = 112, 0.008
 
@@ -27,7 +27,7 @@ def test_surfaces_match_the_paper(name, cls, w):
     stack = np.stack(
         [terrain.generate(name, (N, 3 * N), B, seed=s)[:, N : 2 * N] for s in range(12)]
     )
-    est = patch_roughness(stack, B)
+    est = patch_roughness_batch(stack, B)
     r = math.exp(np.mean([math.log(e.R) for e in est]))
     assert iso_class(r) == cls
     assert np.mean([e.w for e in est]) == pytest.approx(w, abs=0.08)

@@ -15,7 +15,6 @@ Conventions every command keeps (``rough_map.cli.main`` builds the sub-parsers w
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import math
 import sys
@@ -23,8 +22,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NoReturn
 
-import numpy as np
-
+from rough_map.config import jsonable
 from rough_map.patch import DEFAULT_AHEAD, DEFAULT_SIZE, DEFAULT_SPACING, PatchSpec
 
 # --------------------------------------------------------------------------- the parser
@@ -291,37 +289,6 @@ def patch_spec(args: argparse.Namespace) -> PatchSpec:
 
 
 # --------------------------------------------------------------------------- output
-
-
-def jsonable(value: Any) -> Any:
-    """``value`` as plain JSON types: numpy scalars and arrays as numbers and lists, NaN
-    and inf as None, paths as strings, objects with a ``to_dict()`` (such as
-    :class:`rough_map.map.near_far.AccuracyTable`) and dataclasses as dicts.
-
-    Raises
-    ------
-    TypeError
-        Something else that JSON cannot hold.
-    """
-    if isinstance(value, dict):
-        return {str(k): jsonable(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return jsonable(value.tolist())
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if value is None or isinstance(value, bool | int | float | str):
-        return value
-    if isinstance(value, Path):
-        return str(value)
-    if callable(getattr(value, "to_dict", None)):
-        return jsonable(value.to_dict())
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return jsonable(dataclasses.asdict(value))
-    raise TypeError(f"cannot write a {type(value).__name__} as JSON")
 
 
 def emit_json(obj: Any, *, indent: int | None = None) -> None:

@@ -16,6 +16,7 @@ import math
 from collections import Counter
 from pathlib import Path
 
+from rough_map._files import atomic_output
 from rough_map.cli._common import (
     add_mode_arg,
     add_model_arg,
@@ -24,6 +25,8 @@ from rough_map.cli._common import (
     status,
     table,
 )
+from rough_map.errors import InputError
+from rough_map.features import feature_tables
 
 COLUMNS = (
     "frame",
@@ -75,10 +78,8 @@ def _fmt(value: object) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rough_map._files import atomic_output
-    from rough_map.errors import InputError
-    from rough_map.features import feature_tables
-    from rough_map.io.model import load_terrain_model
+    # rough_map.classify imports scikit-learn and skops: only when classifying
+    from rough_map.classify import load_terrain_model
 
     if args.out.suffix.lower() != ".csv":
         raise InputError(f"--out must be a .csv file, not {args.out.name!r}")

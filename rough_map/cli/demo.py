@@ -13,11 +13,14 @@ from __future__ import annotations
 
 import argparse
 import math
+import shutil
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from rough_map import iso8608, terrain
 from rough_map.cli._common import (
     non_negative_int,
     positive_float,
@@ -25,6 +28,13 @@ from rough_map.cli._common import (
     status,
     table,
 )
+from rough_map.cli.map import default_model
+from rough_map.errors import InputError
+from rough_map.patch import DEFAULT_SPACING, Extraction
+
+if TYPE_CHECKING:
+    from rough_map.io.traverse import Traverse
+    from rough_map.workflow import TraverseAnalysis
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -91,23 +101,25 @@ STEREO_CAPTION = (
 )
 
 
-def synthetic_table(seed: int, patches: int = 10) -> str:
-    """Part 1: R and w of synthetic patches next to the truth, as text."""
-    return table(synthetic_rows(seed, patches), SYNTHETIC_HEAD)
+CLASS_HEAD = ["true class", "frames", "R [m³/rad]", "ISO", "w", "raw acc", "filtered acc"]
+CLASS_CAPTION = (
+    "Per true class of the simulated traverse: frames with a valid patch, geometric "
+    "mean of R and its ISO 8608 class, mean w, and the share of frames the classifier "
+    "(raw) and the path filter (filtered) label correctly."
+)
 
 
 def synthetic_rows(seed: int, patches: int = 10) -> list[list[str]]:
     """Part 1: R and w of synthetic patches next to the truth (rows of SYNTHETIC_HEAD)."""
-    from rough_map import iso8608, terrain
-    from rough_map.patch import DEFAULT_SPACING as B
-    from rough_map.psd import patch_roughness
+    from rough_map.psd import patch_roughness_batch
 
+    B = DEFAULT_SPACING  # the paper's name of the grid step, m
     n = 112
     rng = np.random.default_rng(seed)
     rows = []
 
     def estimate(make):
-        est = patch_roughness(np.stack([make(rng) for _ in range(patches)]), B)
+        est = patch_roughness_batch(np.stack([make(rng) for _ in range(patches)]), B)
         return (
             math.exp(np.mean([math.log(e.R) for e in est])),
             float(np.mean([e.w for e in est])),
@@ -159,25 +171,70 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _whole_story(args: argparse.Namespace, t0: float, synthetic: list[list[str]]) -> int:
-    import shutil
-
-    from rough_map.cli.map import default_model
     from rough_map.evaluation import evaluate_model
     from rough_map.export import export_map
     from rough_map.export.report import ReportTable, write_report
-    from rough_map.io.traverse import load_traverse
-    from rough_map.simulate.course import simulate
-    from rough_map.workflow import analyse, level_edges, truth_accuracy, write_tables
+    from rough_map.workflow import analyse, level_edges, write_tables
 
     out: Path = args.out
+    if not _fresh_folder(out):
+        _say(f"rough-map demo: {out} exists and is not a previous demo; use --out")
+        return 2
+    trav = _simulate(args, out / "traverse")
+
+    _say(
+        "\n== 3. Stereo (SGBM on the patch rows) -> point cloud -> R, w; against the range "
+        "sensor =="
+    )
+    stereo_rows, stereo_note = _stereo_rows(trav)
+    _say(table(stereo_rows, STEREO_HEAD) + f"\n{stereo_note}")
+
+    _say("\n== 4. Features, terrain model and Bayesian path filter; 5. map, near-to-far ==")
+    result = analyse(trav, args.model or default_model(), near_far="auto", progress=args.progress)
+    class_rows = _class_rows(result)
+    _say(table(class_rows, CLASS_HEAD))
+    evaluation = evaluate_model(result.model, [result.features])
+    _say_scores(result, evaluation)
+
+    _say("\n== 6. Outputs ==")
+    paths = export_map(result.map, out, name="map", png=True)
+    paths.update(write_tables(result, out))
+    tables = [
+        ReportTable("The PSD estimator on synthetic patches", SYNTHETIC_HEAD, synthetic,
+                    SYNTHETIC_CAPTION),
+        ReportTable("Stereo against the range sensor", STEREO_HEAD, stereo_rows, STEREO_CAPTION,
+                    [stereo_note]),
+        ReportTable("Features and classes by true class", CLASS_HEAD, class_rows, CLASS_CAPTION),
+    ]  # fmt: skip
+    paths.update(
+        write_report(
+            result, out, evaluation=evaluation, level_edges=level_edges(result), tables=tables
+        )
+    )
+    rows = [[k, str(v)] for k, v in paths.items()]
+    _say(table(rows, ["output", "path"]))
+    _say(f"\nOpen {paths['index']} in a browser. Done in {time.perf_counter() - t0:.0f} s.")
+    status(args, f"demo outputs in {out}")
+    return 0
+
+
+def _fresh_folder(out: Path) -> bool:
+    """Make ``out`` an empty demo folder (a previous demo is replaced); False when it
+    exists and is not a demo's."""
     if out.exists():
         if not (out / "DEMO").is_file():
-            _say(f"rough-map demo: {out} exists and is not a previous demo; use --out")
-            return 2
+            return False
         shutil.rmtree(out)
     out.mkdir(parents=True)
     (out / "DEMO").write_text("written by rough-map demo; safe to delete\n")
-    trav_dir = out / "traverse"
+    return True
+
+
+def _simulate(args: argparse.Namespace, trav_dir: Path) -> Traverse:
+    """Part 2: the mixed course, simulated into ``trav_dir``."""
+    from rough_map.io.traverse import load_traverse
+    from rough_map.simulate.course import simulate
+
     _say(
         f"\n== 2. Simulating the mixed course ({args.length:g} m: concrete with a manhole, "
         f"dirt road, gravel) =="
@@ -195,147 +252,94 @@ def _whole_story(args: argparse.Namespace, t0: float, synthetic: list[list[str]]
     trav = load_traverse(trav_dir)
     n_img = sum(f.left is not None for f in trav.frames)
     _say(f"{len(trav)} frames at 2 Hz, 0.5 m/s; {n_img} stereo pairs (1280x960) -> {trav_dir}")
+    return trav
 
-    _say(
-        "\n== 3. Stereo (SGBM on the patch rows) -> point cloud -> R, w; against the range "
-        "sensor =="
-    )
-    stereo_rows, stereo_note = _stereo_rows(trav)
-    _say(table(stereo_rows, STEREO_HEAD) + f"\n{stereo_note}")
 
-    _say("\n== 4. Features, terrain model and Bayesian path filter; 5. map, near-to-far ==")
-    model = args.model or default_model()
-    result = analyse(trav, model, near_far="auto", progress=args.progress)
-    f = result.features
-    pred = result.prediction
+def _class_rows(result: TraverseAnalysis) -> list[list[str]]:
+    """Per true class: frames, R, ISO class, w, raw and filtered accuracy (CLASS_HEAD)."""
+    from rough_map.features import label_summary
+
+    f, pred = result.features, result.prediction
+    assert pred is not None  # the demo always has a model
     rows = []
-    for lab in dict.fromkeys(f["label"]):
+    for lab, s in label_summary(f).items():
         sel = f.valid & (f["label"] == lab)
-        if sel.any():
-            r = math.exp(float(np.mean(np.log(f["R"][sel]))))
-            from rough_map.iso8608 import iso_class
+        rows.append(
+            [
+                lab,
+                str(s.frames),
+                f"{s.R:.2e}",
+                s.iso_class,
+                f"{s.w:.2f}",
+                f"{np.mean(pred.raw_class[sel] == lab):.2f}",
+                f"{np.mean(pred.filtered_class[sel] == lab):.2f}",
+            ]
+        )
+    return rows
 
-            rows.append(
-                [
-                    lab,
-                    str(int(sel.sum())),
-                    f"{r:.2e}",
-                    str(iso_class(r)),
-                    f"{np.mean(f['w'][sel]):.2f}",
-                    f"{np.mean(pred.raw_class[sel] == lab):.2f}",
-                    f"{np.mean(pred.filtered_class[sel] == lab):.2f}",
-                ]
-            )
-    class_head = ["true class", "frames", "R [m³/rad]", "ISO", "w", "raw acc", "filtered acc"]
-    class_rows = rows
-    _say(table(rows, class_head))
-    evaluation = evaluate_model(result.model, [f])
+
+def _say_scores(result: TraverseAnalysis, evaluation: dict[str, Any]) -> None:
+    """Macro-F1 and accuracy, the defect, and the map's accuracy against the truth."""
+    pred = result.prediction
+    assert pred is not None  # the demo always has a model
+    raw, filtered = evaluation["raw"], evaluation["filtered"]
     _say(
         f"macro-F1 (over the true classes {', '.join(evaluation['scored_classes'])}) raw "
-        f"{evaluation['raw']['macro_f1']:.3f}, filtered "
-        f"{evaluation['filtered']['macro_f1']:.3f}; accuracy raw "
-        f"{evaluation['raw']['accuracy']:.3f}, filtered {evaluation['filtered']['accuracy']:.3f}"
+        f"{raw['macro_f1']:.3f}, filtered {filtered['macro_f1']:.3f}; accuracy raw "
+        f"{raw['accuracy']:.3f}, filtered {filtered['accuracy']:.3f}"
     )
-    if pred.defect.any():
-        at = pred.distance[pred.defect]
+    defect = pred.defect
+    if defect is not None and defect.any():
+        at = pred.distance[defect]
         _say(
-            f"isolated defect: {int(pred.defect.sum())} frames from {at.min():.1f} to "
+            f"isolated defect: {int(defect.sum())} frames from {at.min():.1f} to "
             f"{at.max():.1f} m along the path (R spike: the manhole); the filter keeps the "
             "class of the ground around it"
         )
-    truth = truth_accuracy(result)
+    truth = result.truth_accuracy()
     _say(
         f"map: {result.map.shape[1]} x {result.map.shape[0]} cells of 0.1 m; class accuracy "
         f"{truth['near_class_accuracy']:.3f} over the near-field cells"
     )
     if result.far_report:
-        r = result.far_report
+        report = result.far_report
         far = truth.get("far_class_accuracy")
         acc = "" if far is None else f", far-field class accuracy {far:.3f}"
         _say(
-            f"near-to-far: {r['near_area_m2']:.1f} m² seen by geometry, "
-            f"{r['near_far_area_m2']:.1f} m² with appearance (x{r['area_ratio']:.1f}){acc}"
+            f"near-to-far: {report['near_area_m2']:.1f} m² seen by geometry, "
+            f"{report['near_far_area_m2']:.1f} m² with appearance "
+            f"(x{report['area_ratio']:.1f}){acc}"
         )
 
-    _say("\n== 6. Outputs ==")
-    paths = export_map(result.map, out, name="map", png=True)
-    paths.update(write_tables(result, out))
-    tables = [
-        ReportTable("The PSD estimator on synthetic patches", SYNTHETIC_HEAD, synthetic,
-                    SYNTHETIC_CAPTION),
-        ReportTable("Stereo against the range sensor", STEREO_HEAD, stereo_rows, STEREO_CAPTION,
-                    [stereo_note]),
-        ReportTable(
-            "Features and classes by true class",
-            class_head,
-            class_rows,
-            "Per true class of the simulated traverse: frames with a valid patch, geometric "
-            "mean of R and its ISO 8608 class, mean w, and the share of frames the classifier "
-            "(raw) and the path filter (filtered) label correctly.",
-        ),
-    ]  # fmt: skip
-    paths.update(
-        write_report(
-            result, out, evaluation=evaluation, level_edges=level_edges(result), tables=tables
-        )
-    )
-    rows = [[k, str(v)] for k, v in paths.items()]
-    _say(table(rows, ["output", "path"]))
-    _say(f"\nOpen {paths['index']} in a browser. Done in {time.perf_counter() - t0:.0f} s.")
-    status(args, f"demo outputs in {out}")
-    return 0
 
-
-def _stereo_check(trav) -> str:
-    """Features of the stereo clouds against those of the range clouds, as text."""
-    rows, note = _stereo_rows(trav)
-    return table(rows, STEREO_HEAD) + f"\n{note}"
-
-
-def _stereo_rows(trav) -> tuple[list[list[str]], str]:
+def _stereo_rows(trav: Traverse) -> tuple[list[list[str]], str]:
     """Features of the stereo clouds against those of the range clouds, per frame pair
-    (rows of STEREO_HEAD), and the median stereo time."""
+    (rows of STEREO_HEAD; empty features when either patch is invalid), and the median
+    stereo time."""
     from rough_map.features import frame_features
-    from rough_map.patch import PatchSpec
     from rough_map.stereo import read_image, stereo_to_cloud
 
     calib = trav.spec.calibration
-    spec = PatchSpec()
+    if calib is None:
+        raise InputError(f"{trav.name}: the demo's traverse has no stereo calibration")
+    extraction = Extraction()
     rows = []
     times = []
     for i, fr in enumerate(trav.frames):
-        if fr.left is None:
+        if fr.left is None or fr.right is None:
             continue
         left, right = read_image(trav.resolve(fr.left)), read_image(trav.resolve(fr.right))
         t = time.perf_counter()
-        cloud = stereo_to_cloud(left, right, calib)
+        cloud = stereo_to_cloud(left, right, calib, patch=extraction.patch)
         times.append(time.perf_counter() - t)
-        imu = (fr.imu.roll, fr.imu.pitch) if fr.imu is not None else (None, None)
-        st, _, _ = frame_features(cloud, spec, roll=imu[0], pitch=imu[1])
-        rg, _, _ = frame_features(trav.load_cloud(i), spec, roll=imu[0], pitch=imu[1])
+        roll, pitch = (fr.imu.roll, fr.imu.pitch) if fr.imu is not None else (None, None)
+        st, _, _ = frame_features(cloud, extraction, roll=roll, pitch=pitch)
+        rg, _, _ = frame_features(trav.load_cloud(i), extraction, roll=roll, pitch=pitch)
+        row = [str(i), fr.label or "", f"{len(cloud):,}"]
         if st["valid"] and rg["valid"]:
-            rows.append(
-                [
-                    str(i),
-                    fr.label or "",
-                    f"{len(cloud):,}",
-                    f"{rg['R']:.2e}",
-                    f"{st['R']:.2e}",
-                    f"{rg['w']:.2f}",
-                    f"{st['w']:.2f}",
-                ]
-            )
+            row += [f"{rg['R']:.2e}", f"{st['R']:.2e}", f"{rg['w']:.2f}", f"{st['w']:.2f}"]
         else:
-            rows.append(
-                [
-                    str(i),
-                    fr.label or "",
-                    f"{len(cloud):,}",
-                    "",
-                    "",
-                    "",
-                    "",
-                ][:7]
-            )
+            row += ["", "", "", ""]
+        rows.append(row)
     ms = 1e3 * float(np.median(times)) if times else math.nan
     return rows, f"stereo: {ms:.0f} ms per pair (median)"

@@ -36,6 +36,8 @@ from rough_map.cli._common import (
     status,
     table,
 )
+from rough_map.evaluation import evaluate_model
+from rough_map.features import feature_tables
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -95,9 +97,8 @@ def _report(part: dict[str, Any], title: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rough_map.evaluation import evaluate_model
-    from rough_map.features import feature_tables
-    from rough_map.io.model import load_terrain_model
+    # rough_map.classify imports scikit-learn and skops: only when evaluating
+    from rough_map.classify import load_terrain_model
 
     model = load_terrain_model(args.model)
     tables = feature_tables(args.traverses, model.extraction_, progress=args.progress)
@@ -110,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
         f"a label and {fr['invalid']} without a valid patch",
     )
     if args.plot is not None:
-        from rough_map.export.figures import confusion_matrices
+        from rough_map.export.figures import confusion_matrices  # matplotlib: only to draw
 
         confusion_matrices(result, args.plot)
         status(args, f"wrote {args.plot}")

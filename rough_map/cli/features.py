@@ -16,6 +16,7 @@ from rough_map.cli._common import (
     patch_spec,
     table,
 )
+from rough_map.patch import Extraction
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -83,31 +84,23 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_cloud(args: argparse.Namespace) -> int:
+    from rough_map.features import cloud_roughness
     from rough_map.io.pointcloud import read_cloud
-    from rough_map.patch import grid_points
-    from rough_map.psd import patch_roughness
 
     spec = patch_spec(args)
+    extraction = Extraction(patch=spec, method=args.method, subtract_noise=not args.keep_noise)
     t0 = time.perf_counter()
     points = read_cloud(args.source)
     t1 = time.perf_counter()
     tilt = args.roll is not None or args.pitch is not None
-    grid = grid_points(
+    grid, rough = cloud_roughness(
         points,
-        spec,
+        extraction,
         roll=math.radians(args.roll or 0.0) if tilt else None,
         pitch=math.radians(args.pitch or 0.0) if tilt else None,
     )
-    subtract = not args.keep_noise and math.isfinite(grid.noise_psd)
-    rough = patch_roughness(
-        grid.heights,
-        spec.spacing,
-        method=args.method,
-        noise_psd=grid.noise_psd if subtract else None,
-        subtract_noise=subtract,
-        gridding=grid.gridding,
-    )
     t2 = time.perf_counter()
+    timing_ms = {"load": 1e3 * (t1 - t0), "process": 1e3 * (t2 - t1)}
     result = {
         "file": str(args.source),
         **rough.as_dict(),
@@ -124,7 +117,7 @@ def run_cloud(args: argparse.Namespace) -> int:
         "ahead": spec.ahead,
         "band_rad_per_m": [float(rough.omega[0]), float(rough.omega[-1])],
         "tilt_compensated": args.roll is not None or args.pitch is not None,
-        "timing_ms": {"load": 1e3 * (t1 - t0), "process": 1e3 * (t2 - t1)},
+        "timing_ms": timing_ms,
     }
     if args.json:
         emit_json(result)
@@ -151,8 +144,7 @@ def run_cloud(args: argparse.Namespace) -> int:
         ["method", rough.method],
         [
             "time",
-            f"{result['timing_ms']['process']:.1f} ms after loading "
-            f"({result['timing_ms']['load']:.1f} ms to load)",
+            f"{timing_ms['process']:.1f} ms after loading ({timing_ms['load']:.1f} ms to load)",
         ],
     ]
     print(table(rows))

@@ -1,4 +1,12 @@
-"""Entry point of the ``rough-map`` command."""
+"""Entry point of the ``rough-map`` command.
+
+Command modules import the library's heavy stages (``rough_map.workflow``,
+``rough_map.features``, ``rough_map.classify`` ... which pull in scikit-learn, matplotlib,
+OpenCV) inside their ``run`` functions, not at the top: building the parser imports every
+command module, and ``rough-map --help`` should not wait for them. This is the one reason
+the CLI defers imports of rough_map modules; private helper modules (``_common``,
+``_traverse_features``) are not commands and are not imported by the parser.
+"""
 
 from __future__ import annotations
 
@@ -7,22 +15,22 @@ import importlib
 import logging
 import os
 import pkgutil
+import shlex
 import sys
 import warnings
 
+import rough_map.cli
 from rough_map import __version__
 from rough_map.cli._common import CommandParser, Parser, add_verbosity_args
 from rough_map.errors import RoughMapError
 
-# Every module of this package that defines ``register`` is a command.
-_NOT_COMMANDS = {"main", "_common"}
+# Every public module of this package that defines ``register`` is a command.
+_NOT_COMMANDS = {"main"}
 
 
 def _command_modules() -> list[str]:
-    import rough_map.cli as pkg
-
-    names = sorted(m.name for m in pkgutil.iter_modules(pkg.__path__))
-    return [f"rough_map.cli.{n}" for n in names if n not in _NOT_COMMANDS]
+    names = sorted(m.name for m in pkgutil.iter_modules(rough_map.cli.__path__))
+    return [f"rough_map.cli.{n}" for n in names if n not in _NOT_COMMANDS and n[0] != "_"]
 
 
 log = logging.getLogger("rough_map")
@@ -66,6 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     A bad argument returns 2 after one line on stderr, as an error of a command does;
     ``--help`` and ``--version`` return 0.
     """
+    argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
@@ -80,6 +89,9 @@ def main(argv: list[str] | None = None) -> int:
     saved = logger.handlers[:], logger.level, logger.propagate
     _configure_logging(args.verbose, args.quiet)
     args.progress = not args.quiet and sys.stderr.isatty()
+    # The command line as typed (for records such as a model card), whatever the order
+    # of the options around the command name.
+    args.command_line = "rough-map " + shlex.join(str(a) for a in argv)
     try:
         with warnings.catch_warnings():
             # rough_map's warnings (an all-nodata map...) read as log lines, not as the

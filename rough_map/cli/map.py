@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from rough_map.cli._common import (
     add_model_arg,
@@ -13,6 +14,10 @@ from rough_map.cli._common import (
     status,
     table,
 )
+from rough_map.resources import model_base
+
+if TYPE_CHECKING:
+    from rough_map.map.grid import GridMap
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -57,19 +62,21 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+#: ``--near-far`` choices -> ``rough_map.workflow.analyse``'s ``near_far``.
+NEAR_FAR: dict[str, str | bool] = {"auto": "auto", "on": True, "off": False}
+
+
 def default_model() -> Path:
     """The model shipped with rough_map (``models/default``), found as package data."""
-    from rough_map.resources import model_base
-
     return model_base()
 
 
 def run(args: argparse.Namespace) -> int:
     from rough_map.export import export_map
-    from rough_map.workflow import analyse, truth_accuracy, write_tables
+    from rough_map.workflow import analyse, write_tables
 
     out: Path = args.out
-    near_far = {"auto": "auto", "on": True, "off": False}[args.near_far]
+    near_far = NEAR_FAR[args.near_far]
     result = analyse(
         args.traverse,
         args.model or default_model(),
@@ -90,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
         "map_shape": list(result.map.shape),
         "resolution_m": args.resolution,
         **result.far_report,
-        **truth_accuracy(result),
+        **result.truth_accuracy(),
         "outputs": paths,
     }
     if args.json:
@@ -116,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _write_pngs(grid, out: Path, *, progress: bool) -> dict[str, Path]:
+def _write_pngs(grid: GridMap, out: Path, *, progress: bool) -> dict[str, Path]:
     """One PNG per layer (as :func:`rough_map.export.export_map` draws them), with a
     progress bar: drawing them is the longest step after the features."""
     from tqdm import tqdm

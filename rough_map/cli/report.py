@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from rough_map.cli._common import add_model_arg, add_traverses_arg, positive_float, status
+from rough_map.cli.map import NEAR_FAR, default_model
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -46,13 +47,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rough_map.cli.map import default_model
     from rough_map.evaluation import evaluate_model
     from rough_map.export import export_map
     from rough_map.export.report import write_report
     from rough_map.workflow import analyse, level_edges, write_tables
 
-    near_far = {"auto": "auto", "on": True, "off": False}[args.near_far]
+    near_far = NEAR_FAR[args.near_far]
     model_path = args.model or default_model()
     result = analyse(
         args.traverse,

@@ -12,11 +12,11 @@ from rough_map.cli._common import (
     positive_int,
     status,
 )
+from rough_map.errors import InputError
+from rough_map.simulate.world import COURSES
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from rough_map.simulate.world import COURSES
-
     p = sub.add_parser(
         "simulate",
         help="simulate a rover traverse (clouds, stereo images, labels, true terrain)",
@@ -35,6 +35,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         ),
     )
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="new folder")
+    _add_course_args(p)
+    _add_sensor_args(p)
+    _add_recording_args(p)
+    p.set_defaults(func=run)
+
+
+def _add_course_args(p: argparse.ArgumentParser) -> None:
+    """The course, the drive and the world: --course, --length, --speed, --rate, --seed,
+    --width."""
     p.add_argument("--course", choices=COURSES, default="mixed", help="layout of the surfaces")
     p.add_argument(
         "--length",
@@ -66,6 +75,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="M",
         help="width of the terrain across the course in m (default 4.0)",
     )
+
+
+def _add_sensor_args(p: argparse.ArgumentParser) -> None:
+    """The sensors: --no-images, --image-every, --points-per-cell, --noise,
+    --cloud-extent."""
     p.add_argument(
         "--no-images", action="store_true", help="skip rendering the stereo pairs (much faster)"
     )
@@ -99,6 +113,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         "vehicle frame (default 0.5: x 0.5-1.5 m, y -0.5-0.5 m; 0.55 keeps the sensor's "
         "whole 1.1 m footprint)",
     )
+
+
+def _add_recording_args(p: argparse.ArgumentParser) -> None:
+    """How the traverse is written: --compress, --bag, --bag-storage."""
     p.add_argument(
         "--compress",
         action="store_true",
@@ -120,11 +138,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         default="mcap",
         help="format of --bag: a ROS 2 bag folder (mcap, sqlite3) or a ROS 1 .bag file",
     )
-    p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from rough_map.errors import InputError
     from rough_map.simulate.course import SensorSpec, simulate
 
     if args.bag is not None and args.bag.exists():

@@ -3,11 +3,17 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import time
 from pathlib import Path
 
 from rough_map.cli._common import existing_path, finite_float, positive_float
-from rough_map.patch import DEFAULT_AHEAD, DEFAULT_SIZE
+from rough_map.errors import PatchError
+from rough_map.io.pointcloud import write_cloud
+from rough_map.patch import PatchSpec
+
+#: The default patch of interest (the paper's).
+_PATCH = PatchSpec()
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -56,49 +62,41 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument(
         "--ahead",
         type=finite_float("m"),
-        default=DEFAULT_AHEAD,
+        default=_PATCH.ahead,
         metavar="M",
-        help=f"distance of the patch centre ahead of the vehicle (default {DEFAULT_AHEAD})",
+        help=f"distance of the patch centre ahead of the vehicle (default {_PATCH.ahead})",
     )
     g.add_argument(
         "--size",
         type=positive_float("m"),
-        default=DEFAULT_SIZE,
+        default=_PATCH.size,
         metavar="M",
-        help=f"side of the square patch (default {DEFAULT_SIZE})",
+        help=f"side of the square patch (default {_PATCH.size})",
     )
     g.add_argument(
         "--lateral",
         type=finite_float("m"),
-        default=0.0,
+        default=_PATCH.lateral,
         metavar="M",
-        help="offset of the patch centre to the left (default 0.0)",
+        help=f"offset of the patch centre to the left (default {_PATCH.lateral})",
     )
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    import logging
-
+    # Deferred: pydantic (config) and scipy.stats (stereo) would double the start-up time of
+    # every command (the CLI imports all command modules to build its parser).
     from rough_map.config import StereoCalibration
-    from rough_map.errors import PatchError
-    from rough_map.io.pointcloud import write_cloud
     from rough_map.stereo import StereoConfig, read_image, stereo_to_cloud
 
     log = logging.getLogger("rough_map.cli.stereo")
     calib = StereoCalibration.from_file(args.calib)
     config = StereoConfig.from_file(args.config) if args.config else StereoConfig()
     left, right = read_image(args.left), read_image(args.right)
+    patch = PatchSpec(ahead=args.ahead, size=args.size, lateral=args.lateral)
     t0 = time.perf_counter()
     points = stereo_to_cloud(
-        left,
-        right,
-        calib,
-        config,
-        restrict_to_patch=not args.full_frame,
-        ahead=args.ahead,
-        size=args.size,
-        lateral=args.lateral,
+        left, right, calib, config, patch=patch, restrict_to_patch=not args.full_frame
     )
     log.info("%d points in %.3f s", len(points), time.perf_counter() - t0)
     if len(points) == 0:

@@ -76,17 +76,18 @@ def evaluate_model(model: Any, tables: list[Any], mode: str | None = None) -> di
             f"no frame to score: of {counts['total']} frames, {counts['unlabelled']} have no "
             f"label and {counts['invalid']} no valid patch"
         )
-    y, r, f = np.concatenate(truth), np.concatenate(raw), np.concatenate(filtered)
-    cls = _classes(y, r, f)
-    out = {
+    y_all = np.concatenate(truth)
+    raw_all, filtered_all = np.concatenate(raw), np.concatenate(filtered)
+    cls = _classes(y_all, raw_all, filtered_all)
+    raw_scores = scores(y_all, raw_all, cls)
+    return {
         "mode": used_mode,
         "frames": counts,
-        "raw": scores(y, r, cls),
-        "filtered": scores(y, f, cls),
+        "raw": raw_scores,
+        "filtered": scores(y_all, filtered_all, cls),
         "per_traverse": per_traverse,
+        "scored_classes": raw_scores["scored_classes"],
     }
-    out["scored_classes"] = out["raw"]["scored_classes"]
-    return out
 
 
 def _classes(*labels: np.ndarray) -> list[str]:

@@ -55,18 +55,18 @@ def scores(
         raise errors.InputError("no frames to score")
     present = unique_labels(t)
     if classes is None:
-        classes = unique_labels(t, p)
+        labels = unique_labels(t, p)
     else:
         given = [str(c) for c in classes]
         missing = sorted({str(c) for c in unique_labels(t, p)} - set(given))
         if missing:
             raise errors.InputError(f"classes {given} lack the scored classes {missing}")
-        classes = np.asarray(given)
-    cm = confusion_matrix(t, p, labels=classes)
+        labels = np.asarray(given)
+    cm = confusion_matrix(t, p, labels=labels)
     rows = cm.sum(axis=1, keepdims=True)
     norm = np.divide(cm, rows, out=np.zeros(cm.shape), where=rows > 0)
-    prec, rec, f1, sup = precision_recall_fscore_support(t, p, labels=classes, zero_division=0)
-    names = [str(c) for c in classes]
+    prec, rec, f1, sup = precision_recall_fscore_support(t, p, labels=labels, zero_division=0)
+    names = [str(c) for c in labels]
     return {
         "classes": names,
         "confusion_matrix": cm.tolist(),

@@ -1,19 +1,27 @@
 """Export a grid map: Cloud-Optimized GeoTIFFs, PNGs per layer, a grid_map bag.
 
 :func:`export_map` writes everything a map has; the writers live in
-:mod:`rough_map.export.geotiff`, :mod:`rough_map.export.png` and
-:mod:`rough_map.export.gridmap_msg`, their defaults in :mod:`rough_map.export.profiles`.
-Heavy libraries (rasterio, matplotlib, rosbags) are imported only when a writer runs.
+:mod:`rough_map.export.geotiff`, :mod:`rough_map.export.png` (laid out by
+:mod:`rough_map.export.layout`) and :mod:`rough_map.export.gridmap_msg`, their defaults in
+:mod:`rough_map.export.profiles`. The report is :mod:`rough_map.export.report` (figures of
+:mod:`rough_map.export.figures`, page of :mod:`rough_map.export.report_html`). Heavy
+libraries (rasterio, matplotlib, rosbags) are imported only when a writer runs.
 """
 
 from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import TYPE_CHECKING
 
-if TYPE_CHECKING:
-    from rough_map.map.grid import GridMap
+from rough_map.export.geotiff import (
+    class_layers,
+    value_layers,
+    write_class_geotiff,
+    write_values_geotiff,
+)
+from rough_map.export.gridmap_msg import write_gridmap_bag
+from rough_map.export.png import write_pngs
+from rough_map.map.grid import GridMap
 
 log = logging.getLogger(__name__)
 
@@ -52,13 +60,6 @@ def export_map(
         ``"png_<layer>"``: ``<name>_<layer>.png`` per layer;
         ``"gridmap_bag"``: the bag folder ``<name>_gridmap``.
     """
-    from rough_map.export.geotiff import (
-        class_layers,
-        value_layers,
-        write_class_geotiff,
-        write_values_geotiff,
-    )
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths: dict[str, Path] = {}
@@ -67,13 +68,9 @@ def export_map(
     for layer in class_layers(grid):
         paths[f"geotiff_{layer}"] = write_class_geotiff(grid, out / f"{name}_{layer}.tif", layer)
     if png:
-        from rough_map.export.png import write_pngs
-
         for layer, p in write_pngs(grid, out, name).items():
             paths[f"png_{layer}"] = p
     if gridmap_bag:
-        from rough_map.export.gridmap_msg import write_gridmap_bag
-
         paths["gridmap_bag"] = write_gridmap_bag(grid, out / f"{name}_gridmap")
     log.info("exported map %r: %d files in %s", name, len(paths), out)
     return paths

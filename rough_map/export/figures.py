@@ -1,7 +1,9 @@
-"""The paper's figures, drawn with matplotlib (Agg) from real runs.
+"""The paper's figures, drawn with matplotlib from real runs.
 
 Every function takes the data it draws and an output path, writes one PNG atomically and
-returns the path. Figure numbers refer to Reina et al., *Mind the ground*.
+returns the path. Figures are drawn on their own Agg canvas, never through pyplot: the
+caller's matplotlib backend (a notebook's inline backend) is left as it was. Figure numbers
+refer to Reina et al., *Mind the ground*.
 
 * :func:`roughness_along_path` - R and w along the path with sigma bands and ISO class
   reference lines (Figs. 7, 9, 12, 14);
@@ -17,50 +19,65 @@ from __future__ import annotations
 import logging
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from rough_map import iso8608
-from rough_map.export.profiles import CLASS_COLOURS, LEVEL_COLOURS
+from rough_map._files import atomic_output
+from rough_map.export.layout import MapPanel, data_view, draw_map_panels
+from rough_map.export.profiles import LEVEL_COLOURS, class_colour
 
 log = logging.getLogger(__name__)
+
+__all__ = [
+    "class_colour",
+    "class_scatter",
+    "confusion_matrices",
+    "map_layers",
+    "profile_psd_fit",
+    "profile_scatter",
+    "psd_lines_vs_iso",
+    "roughness_along_path",
+]
 
 _LEVEL_RGB = [tuple(v / 255 for v in c) for c in LEVEL_COLOURS]  # matplotlib colours
 
 
-def class_colour(name: str, index: int = 0) -> tuple[int, int, int]:
-    """RGB of a class; classes not in :data:`CLASS_COLOURS` get a tab10 colour."""
-    if name in CLASS_COLOURS:
-        return CLASS_COLOURS[name]
-    import matplotlib
-
-    r, g, b, _ = matplotlib.colormaps["tab10"](index % 10)
-    return int(255 * r), int(255 * g), int(255 * b)
+def _rgb01(name: str, index: int) -> np.ndarray:
+    """The class colour (:func:`class_colour`) on matplotlib's 0-1 scale."""
+    return np.array(class_colour(name, index)) / 255
 
 
-def _figure(width: float = 8.0, height: float = 5.0):
-    import matplotlib
+def _figure(width: float = 8.0, height: float = 5.0) -> Any:
+    """A :class:`~matplotlib.figure.Figure` with its own Agg canvas.
 
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
+    pyplot is not used, so drawing a figure never switches the caller's backend (a
+    notebook keeps its inline backend) and leaves no figure open.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
-    return plt, plt.figure(figsize=(width, height), dpi=110)
+    fig = Figure(figsize=(width, height), dpi=110)
+    FigureCanvasAgg(fig)
+    return fig
 
 
-def _save(plt, fig, path: str | Path, *, tight: bool = False) -> Path:
-    """Save and close; ``tight`` crops the PNG to what is drawn (nothing cut off)."""
-    from rough_map._files import atomic_output
+def _save(fig: Any, path: str | Path, *, tight: bool = False, layout: bool = True) -> Path:
+    """Write the figure to a PNG atomically.
 
+    ``layout`` applies the tight layout to a figure without a layout engine; ``tight``
+    crops the PNG to what is drawn (nothing cut off).
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    if fig.get_layout_engine() is None:
+    if layout and fig.get_layout_engine() is None:
         fig.tight_layout()
     with atomic_output(path) as tmp:
         if tight:
             fig.savefig(tmp, format="png", bbox_inches="tight", pad_inches=0.15)
         else:
             fig.savefig(tmp, format="png")
-    plt.close(fig)
     log.debug("wrote %s", path)
     return path
 
@@ -83,67 +100,20 @@ def roughness_along_path(
     predicted labels, if given, shade the background; frames flagged in ``defects`` (bool
     per frame, isolated defects such as a manhole) are marked on the R curve.
     """
-    from matplotlib.transforms import blended_transform_factory
-
-    plt, fig = _figure(9, 6.4)
+    fig = _figure(9, 6.4)
     fig.set_layout_engine("constrained")
     ax1 = fig.add_subplot(2, 1, 1)
     ax2 = fig.add_subplot(2, 1, 2, sharex=ax1)
     d = np.asarray(distance, float)
     ok = np.isfinite(R) & np.isfinite(w)
-    lo = np.clip(R - sigma_R, R * 0.05, None)
-    ax1.fill_between(d, lo, R + sigma_R, where=ok, color="0.8", label="±1σ")
-    ax1.plot(d[ok], R[ok], "k-", lw=1.2, label="R")
-    ax1.set_yscale("log")
-    ymin, ymax = (
-        np.nanmin(lo[ok]) if ok.any() else 1e-6,
-        np.nanmax((R + sigma_R)[ok]) if ok.any() else 1e-2,
-    )
-    right_margin = blended_transform_factory(ax1.transAxes, ax1.transData)
-    for cls, phi in iso8608.PHI0.items():
-        if ymin / 3 < phi < ymax * 3:
-            ax1.axhline(phi, color="tab:blue", lw=0.6, ls="--")
-            # class names in the right margin, off the data
-            ax1.text(
-                1.01,
-                phi,
-                f"ISO {cls}",
-                color="tab:blue",
-                fontsize=8,
-                va="center",
-                transform=right_margin,
-                clip_on=False,
-            )
-    ax1.set_ylim(ymin / 3, ymax * 3)
-    if defects is not None and len(defects) == d.size:
-        flagged = np.asarray(defects, dtype=bool) & ok
-        if flagged.any():
-            ax1.plot(d[flagged], R[flagged], "v", color="tab:red", ms=5, label="isolated defect")
-    ax1.set_ylabel("R  [m³/rad]")
+    _r_panel(ax1, d, R, sigma_R, ok, defects)
     ax2.fill_between(d, w - sigma_w, w + sigma_w, where=ok, color="0.8")
     ax2.plot(d[ok], w[ok], "k-", lw=1.2)
     ax2.axhline(-2.0, color="tab:blue", lw=0.6, ls="--")
     ax2.set_ylabel("w")
     ax2.set_xlabel("distance along the path [m]")
     if labels is not None and len(labels) == d.size:
-        names = list(dict.fromkeys(labels))
-        for k, name in enumerate(names):
-            sel = np.asarray(labels) == name
-            if not name or not sel.any():
-                continue
-            c = np.array(class_colour(name, k)) / 255
-            for ax in (ax1, ax2):
-                ax.fill_between(
-                    d,
-                    0,
-                    1,
-                    where=sel,
-                    color=c,
-                    alpha=0.15,
-                    transform=ax.get_xaxis_transform(),
-                    step="mid",
-                    label=name if ax is ax1 else None,
-                )
+        _shade_classes(ax1, ax2, d, labels)
     # the key above the plot, off the data
     handles = ax1.get_legend_handles_labels()[0]
     ax1.legend(
@@ -156,7 +126,71 @@ def roughness_along_path(
     )
     if title:
         fig.suptitle(title)
-    return _save(plt, fig, path)
+    return _save(fig, path)
+
+
+def _r_panel(
+    ax: Any,
+    d: np.ndarray,
+    R: np.ndarray,
+    sigma_R: np.ndarray,
+    ok: np.ndarray,
+    defects: np.ndarray | None,
+) -> None:
+    """R with its band, the ISO 8608 class centres (named in the right margin), defects."""
+    from matplotlib.transforms import blended_transform_factory
+
+    lo = np.clip(R - sigma_R, R * 0.05, None)
+    ax.fill_between(d, lo, R + sigma_R, where=ok, color="0.8", label="±1σ")
+    ax.plot(d[ok], R[ok], "k-", lw=1.2, label="R")
+    ax.set_yscale("log")
+    ymin, ymax = (
+        np.nanmin(lo[ok]) if ok.any() else 1e-6,
+        np.nanmax((R + sigma_R)[ok]) if ok.any() else 1e-2,
+    )
+    right_margin = blended_transform_factory(ax.transAxes, ax.transData)
+    for cls, phi in iso8608.PHI0.items():
+        if ymin / 3 < phi < ymax * 3:
+            ax.axhline(phi, color="tab:blue", lw=0.6, ls="--")
+            # class names in the right margin, off the data
+            ax.text(
+                1.01,
+                phi,
+                f"ISO {cls}",
+                color="tab:blue",
+                fontsize=8,
+                va="center",
+                transform=right_margin,
+                clip_on=False,
+            )
+    ax.set_ylim(ymin / 3, ymax * 3)
+    if defects is not None and len(defects) == d.size:
+        flagged = np.asarray(defects, dtype=bool) & ok
+        if flagged.any():
+            ax.plot(d[flagged], R[flagged], "v", color="tab:red", ms=5, label="isolated defect")
+    ax.set_ylabel("R  [m³/rad]")
+
+
+def _shade_classes(ax1: Any, ax2: Any, d: np.ndarray, labels: Sequence[str]) -> None:
+    """Shade both panels by class along the path; the top panel's legend names them."""
+    names = list(dict.fromkeys(labels))
+    for k, name in enumerate(names):
+        sel = np.asarray(labels) == name
+        if not name or not sel.any():
+            continue
+        c = _rgb01(name, k)
+        for ax in (ax1, ax2):
+            ax.fill_between(
+                d,
+                0,
+                1,
+                where=sel,
+                color=c,
+                alpha=0.15,
+                transform=ax.get_xaxis_transform(),
+                step="mid",
+                label=name if ax is ax1 else None,
+            )
 
 
 def profile_psd_fit(
@@ -170,7 +204,7 @@ def profile_psd_fit(
     title: str = "",
 ) -> Path:
     """PSD of one profile (m³/rad) against Omega (rad/m) with its fit R Omega^w (Fig. 4)."""
-    plt, fig = _figure(7, 5)
+    fig = _figure(7, 5)
     ax = fig.add_subplot(1, 1, 1)
     ax.loglog(omega, psd, color="0.55", lw=1.0, label="PSD of the profile")
     ax.loglog(
@@ -185,7 +219,7 @@ def profile_psd_fit(
     ax.legend()
     ax.set_title(title or "PSD of one longitudinal profile")
     ax.grid(True, which="both", lw=0.3)
-    return _save(plt, fig, path)
+    return _save(fig, path)
 
 
 def profile_scatter(
@@ -198,7 +232,7 @@ def profile_scatter(
     title: str = "",
 ) -> Path:
     """Per-profile (R, w) of a patch, R on a log axis, with the patch mean (Fig. 5)."""
-    plt, fig = _figure(6, 5)
+    fig = _figure(6, 5)
     ax = fig.add_subplot(1, 1, 1)
     ax.scatter(profile_w, profile_R, s=12, color="0.5", label="profiles")
     ax.scatter([w], [R], s=90, facecolors="none", edgecolors="k", lw=2, label="patch")
@@ -207,7 +241,7 @@ def profile_scatter(
     ax.set_ylabel("R  [m³/rad]")
     ax.legend()
     ax.set_title(title or "Roughness parameters of the profiles of one patch")
-    return _save(plt, fig, path)
+    return _save(fig, path)
 
 
 def psd_lines_vs_iso(
@@ -220,7 +254,7 @@ def psd_lines_vs_iso(
 
     ``surfaces`` maps a name to (R in m³/rad, w).
     """
-    plt, fig = _figure(7, 5)
+    fig = _figure(7, 5)
     ax = fig.add_subplot(1, 1, 1)
     om = np.geomspace(band[0], band[1], 50)
     for cls, phi in iso8608.PHI0.items():
@@ -235,14 +269,14 @@ def psd_lines_vs_iso(
             va="center",
         )
     for k, (name, (r, w)) in enumerate(surfaces.items()):
-        c = np.array(class_colour(name, k)) / 255
+        c = _rgb01(name, k)
         ax.loglog(om, r * om**w, color=c, lw=2.2, label=f"{name}: R={r:.1e}, w={w:.2f}")
     ax.set_xlabel("Ω  [rad/m]")
     ax.set_ylabel("PSD  [m³/rad]")
     ax.legend(fontsize=8)
     ax.set_title("Fitted PSD of the surfaces against ISO 8608 classes (w = -2)")
     ax.grid(True, which="both", lw=0.3)
-    return _save(plt, fig, path)
+    return _save(fig, path)
 
 
 def class_scatter(
@@ -251,16 +285,16 @@ def class_scatter(
     labels: Sequence[str],
     path: str | Path,
     *,
-    level_edges: tuple[float, float] | None = None,
+    level_edges: Sequence[float] | None = None,
 ) -> Path:
     """(R, w) by class with the low/medium/high roughness regions (Fig. 19).
 
     ``level_edges`` are the two R thresholds (m³/rad) between low/medium and medium/high.
     """
-    plt, fig = _figure(8, 5)
+    fig = _figure(8, 5)
     fig.set_layout_engine("constrained")
     ax = fig.add_subplot(1, 1, 1)
-    labels = np.asarray(labels, dtype=object)
+    names = np.asarray(labels, dtype=object)
     ok = np.isfinite(R) & np.isfinite(w)
     if level_edges is not None and ok.any():
         wmin, wmax = np.nanmin(w[ok]) - 0.2, np.nanmax(w[ok]) + 0.2
@@ -275,9 +309,9 @@ def class_scatter(
                 label=f"{name} roughness",
             )
         ax.set_xlim(wmin, wmax)
-    for k, name in enumerate(dict.fromkeys(labels[ok])):
-        sel = ok & (labels == name)
-        c = np.array(class_colour(str(name), k)) / 255
+    for k, name in enumerate(dict.fromkeys(names[ok])):
+        sel = ok & (names == name)
+        c = _rgb01(str(name), k)
         ax.scatter(
             w[sel],
             R[sel],
@@ -292,7 +326,7 @@ def class_scatter(
     ax.set_ylabel("R  [m³/rad]")
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
     ax.set_title("Roughness parameters by terrain class")
-    return _save(plt, fig, path)
+    return _save(fig, path)
 
 
 def map_layers(
@@ -312,22 +346,22 @@ def map_layers(
     the class colours and a legend of the class names, ``level`` with low/medium/high
     colours, others with viridis and a colour bar labelled ``labels[name]``. All layers
     share one view: the box of the cells where any of them has data. The layout (scale bar
-    and keys under each map, never over it) is :func:`rough_map.export.png.draw_map_panels`.
+    and keys under each map, never over it) is :func:`rough_map.export.layout.draw_map_panels`.
     """
-    from rough_map.export.png import MapPanel, data_view, draw_map_panels
-
     titles = titles or {}
     labels = labels or {}
     arrays = {k: np.asarray(v, dtype=float) for k, v in layers.items()}
     known = np.zeros(next(iter(arrays.values())).shape, dtype=bool) if arrays else None
     for arr in arrays.values():
         known |= np.isfinite(arr)
-    view = data_view(known, extent) if known is not None else tuple(extent)
+    x0, x1, y0, y1 = (float(v) for v in extent)
+    box = (x0, x1, y0, y1)
+    view = data_view(known, box) if known is not None else box
     panels = []
     for name, arr in arrays.items():
         panel = MapPanel(
             data=arr,
-            extent=tuple(extent),
+            extent=box,
             title=titles.get(name, name),
             label=labels.get(name, name),
             view=view,
@@ -335,25 +369,13 @@ def map_layers(
         )
         if name == "class" and class_names:
             panel.categories = tuple(class_names)
-            panel.colours = [np.array(class_colour(c, i)) / 255 for i, c in enumerate(class_names)]
+            panel.colours = [tuple(_rgb01(c, i)) for i, c in enumerate(class_names)]
         elif name == "level":
             panel.categories = ("low", "medium", "high")
             panel.colours = _LEVEL_RGB
         panels.append(panel)
     fig = draw_map_panels(panels, width=9.0, dpi=110)
-    return _save_figure(fig, path)
-
-
-def _save_figure(fig, path: str | Path) -> Path:
-    """Save a Figure made without pyplot (it has its own Agg canvas)."""
-    from rough_map._files import atomic_output
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_output(path) as tmp:
-        fig.savefig(tmp, format="png")
-    log.debug("wrote %s", path)
-    return path
+    return _save(fig, path, layout=False)
 
 
 def _aligned(part: dict, names: list[str]) -> np.ndarray:
@@ -385,7 +407,7 @@ def confusion_matrices(evaluation: dict, path: str | Path) -> Path:
     scored = set(evaluation.get("scored_classes") or parts[0].get("scored_classes") or names)
     longest = max(len(n) for n in names) + (14 if scored != set(names) else 0)
     side = max(3.0, 0.75 * len(names))  # in, each matrix
-    plt, fig = _figure(2 * side + 0.09 * longest + 2.6, side + 0.08 * longest + 1.6)
+    fig = _figure(2 * side + 0.09 * longest + 2.6, side + 0.08 * longest + 1.6)
     fig.set_layout_engine("constrained")
     axes = fig.subplots(1, 2)
     im = None
@@ -421,4 +443,4 @@ def confusion_matrices(evaluation: dict, path: str | Path) -> Path:
                     fontsize=8,
                 )
     fig.colorbar(im, ax=list(axes), shrink=0.8, label="fraction of the true class")
-    return _save(plt, fig, path, tight=True)
+    return _save(fig, path, tight=True)

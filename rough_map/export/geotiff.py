@@ -27,20 +27,22 @@ from __future__ import annotations
 import json
 import logging
 import math
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from rough_map import __version__
+from rough_map._files import atomic_output
 from rough_map.config import Crs
 from rough_map.errors import InputError
 from rough_map.export.profiles import (
-    CLASS_COLOURS,
     CLASS_NODATA,
     LEADING_BANDS,
     ClassProfile,
     ValuesProfile,
+    class_colour,
 )
 from rough_map.map.grid import GridMap
 
@@ -95,18 +97,10 @@ def overview_factors(shape: tuple[int, int], min_size: int = 16) -> list[int]:
     return [2**k for k in range(1, levels + 1)]
 
 
-def class_colours(names: tuple[str, ...] | list[str]) -> dict[int, tuple[int, int, int, int]]:
-    """Colour table ``{index: (r, g, b, a)}`` of class names; 255 (unknown) transparent."""
-    from matplotlib import colormaps
-
-    tab = colormaps["tab10"]
-    table: dict[int, tuple[int, int, int, int]] = {}
-    for i, name in enumerate(names):
-        rgb = CLASS_COLOURS.get(name)
-        if rgb is None:
-            rgba = tab(i % 10)
-            rgb = tuple(int(round(255 * v)) for v in rgba[:3])  # type: ignore[assignment]
-        table[i] = (*rgb, 255)  # type: ignore[assignment]
+def class_colours(names: Sequence[str]) -> dict[int, tuple[int, int, int, int]]:
+    """Colour table ``{index: (r, g, b, a)}`` of class names (:func:`class_colour`);
+    255 (unknown) transparent."""
+    table = {i: (*class_colour(name, i), 255) for i, name in enumerate(names)}
     table[CLASS_NODATA] = (0, 0, 0, 0)
     return table
 
@@ -133,7 +127,7 @@ def _dataset_tags(grid: GridMap) -> dict[str, str]:
     return tags
 
 
-def _creation_options(profile: dict[str, Any], driver: str) -> dict[str, Any]:
+def _creation_options(profile: Mapping[str, Any], driver: str) -> dict[str, Any]:
     opts: dict[str, Any] = {"COMPRESS": profile["compress"]}
     bs = int(profile["blocksize"])
     if driver == "COG":
@@ -163,8 +157,8 @@ def _write(
     grid: GridMap,
     path: str | Path,
     bands: np.ndarray,
-    profile: dict[str, Any],
-    describe: Any,
+    profile: Mapping[str, Any],
+    describe: Callable[[Any], None],
 ) -> Path:
     """Write ``bands`` (count, rows, cols; north-up) through an in-memory GTiff with
     overviews, copied to ``path`` as COG (or tiled GTiff)."""
@@ -172,9 +166,6 @@ def _write(
     from rasterio.enums import Resampling
     from rasterio.io import MemoryFile
     from rasterio.shutil import copy as rio_copy
-    from rasterio.transform import Affine
-
-    from rough_map._files import atomic_output
 
     count, height, width = bands.shape
     if height == 0 or width == 0:
@@ -193,7 +184,7 @@ def _write(
             count=count,
             dtype=profile["dtype"],
             crs=rasterio_crs(grid.crs),
-            transform=Affine.from_gdal(*grid.geometry.transform()),
+            transform=grid.geometry.transform(),
             nodata=profile["nodata"],
         ) as ds:
             ds.write(bands)

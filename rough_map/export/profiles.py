@@ -22,10 +22,12 @@ __all__ = [
     "CLASS_NODATA",
     "LEADING_BANDS",
     "LEVEL_COLOURS",
+    "OTHER_CLASS_COLOURS",
     "PNG_STYLE",
     "ClassProfile",
     "Profile",
     "ValuesProfile",
+    "class_colour",
 ]
 
 
@@ -93,8 +95,9 @@ LEADING_BANDS: tuple[str, ...] = (
     "last_seen",
 )
 
-#: Colours (RGB 0-255) of the terrain classes of :mod:`rough_map.terrain` (the same as
-#: ``rough_map.export.figures``); other classes take the matplotlib ``tab10`` colours.
+#: Colours (RGB 0-255) of the terrain classes of :mod:`rough_map.terrain`, in every
+#: export (GeoTIFF colour tables, PNGs, report figures); other classes take
+#: :data:`OTHER_CLASS_COLOURS` by their index (:func:`class_colour`).
 CLASS_COLOURS: dict[str, tuple[int, int, int]] = {
     "concrete": (160, 160, 160),
     "dirt_road": (196, 160, 100),
@@ -102,6 +105,26 @@ CLASS_COLOURS: dict[str, tuple[int, int, int]] = {
     "compact_soil": (140, 100, 60),
     "ploughed_soil": (80, 50, 30),
 }
+
+#: Colours (RGB 0-255) of classes not in :data:`CLASS_COLOURS`: matplotlib's ``tab10``.
+OTHER_CLASS_COLOURS: tuple[tuple[int, int, int], ...] = (
+    (31, 119, 180),
+    (255, 127, 14),
+    (44, 160, 44),
+    (214, 39, 40),
+    (148, 103, 189),
+    (140, 86, 75),
+    (227, 119, 194),
+    (127, 127, 127),
+    (188, 189, 34),
+    (23, 190, 207),
+)
+
+
+def class_colour(name: str, index: int = 0) -> tuple[int, int, int]:
+    """RGB (0-255) of the class ``name``, the ``index``-th of its list."""
+    return CLASS_COLOURS.get(name, OTHER_CLASS_COLOURS[index % len(OTHER_CLASS_COLOURS)])
+
 
 #: Colours of the roughness levels, smoothest first (paper Fig. 19: green to red).
 LEVEL_COLOURS: tuple[tuple[int, int, int], ...] = ((44, 160, 44), (255, 191, 0), (214, 39, 40))

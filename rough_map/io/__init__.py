@@ -1,5 +1,13 @@
-"""Readers and writers: point clouds, ROS bags and traverse folders.
+"""Readers and writers: point clouds, ROS bags, traverse folders and other files.
 
-One module per source. Every reader turns a bad file into a
-:class:`rough_map.errors.FileFormatError` that names the file and the field concerned.
+One module per source:
+
+* :mod:`~rough_map.io.pointcloud`: point clouds by file suffix (``read_cloud``,
+  ``write_cloud``), KITTI scans and poses;
+* :mod:`~rough_map.io.las`: LAS/LAZ with classification and coordinate reference system;
+* :mod:`~rough_map.io.rosbag`: ROS 1 and ROS 2 bags (inspect, import a traverse, write);
+* :mod:`~rough_map.io.traverse`: traverse folders (``traverse.json`` and its files).
+
+Every reader turns a bad file into a :class:`rough_map.errors.FileFormatError` that names
+the file and the field concerned.
 """

@@ -14,7 +14,8 @@ suffix             content
                    ``c_offset + c_scale * c`` (read only; ``rough-map simulate --compress``)
 .csv .xyz .txt     text, comma/semicolon/whitespace separated, optional header
 .ply .pcd          read and written with open3d
-.las .laz          read and written with laspy (.laz needs the lazrs backend)
+.las .laz          read and written with laspy (.laz needs the lazrs backend), see
+                   :mod:`rough_map.io.las` for the classification and CRS
 .bin               KITTI velodyne scan: float32 x, y, z, reflectance (read only)
 =================  =============================================================
 
@@ -27,17 +28,29 @@ from __future__ import annotations
 import logging
 import re
 import warnings
-from dataclasses import dataclass
+import zipfile
+import zlib
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
 from rough_map._files import PathLike, atomic_output
 from rough_map.errors import FileFormatError, InputError
+from rough_map.io._check import check_readable
+from rough_map.io.las import read_las, write_las
+
+__all__ = [
+    "READERS",
+    "WRITERS",
+    "CloudReader",
+    "CloudWriter",
+    "read_cloud",
+    "read_kitti_poses",
+    "write_cloud",
+]
 
 log = logging.getLogger(__name__)
-
 
 
 class CloudReader(Protocol):
@@ -68,7 +81,7 @@ def read_cloud(path: PathLike) -> np.ndarray:
     -------
     ndarray, shape (N, 3), float64
         x, y, z in m, finite, N >= 1. LAS/LAZ coordinates in feet are converted to m
-        (see :func:`read_las`).
+        (see :func:`rough_map.io.las.read_las`).
 
     Raises
     ------
@@ -83,7 +96,7 @@ def read_cloud(path: PathLike) -> np.ndarray:
         raise FileFormatError(
             path, f"unknown point-cloud suffix {path.suffix!r}; known: {known}", field="suffix"
         )
-    _check_readable(path)
+    check_readable(path)
     return _finite_xyz(path, reader(path))
 
 
@@ -130,134 +143,6 @@ def write_cloud(path: PathLike, points: np.ndarray) -> Path:
     return path
 
 
-@dataclass(frozen=True)
-class LasCrs:
-    """Coordinate reference system of a LAS file, read without pyproj.
-
-    Attributes
-    ----------
-    wkt : str or None
-        OGC WKT of the CRS (from the WKT VLR or EVLR), if the file has one.
-    epsg : int or None
-        EPSG code, from an ``AUTHORITY``/``ID`` of the WKT or else from the GeoTIFF keys
-        (ProjectedCSTypeGeoKey, or GeographicTypeGeoKey for a geographic CRS).
-    horizontal_unit_m : float
-        Length in m of one unit of the file's x and y.
-    vertical_unit_m : float
-        Length in m of one unit of the file's z. When the file gives no vertical unit the
-        horizontal one is assumed.
-    unit_name : str
-        Name of the horizontal unit as written in the file (``"metre"`` if none).
-    """
-
-    wkt: str | None
-    epsg: int | None
-    horizontal_unit_m: float
-    vertical_unit_m: float
-    unit_name: str
-
-
-@dataclass(frozen=True, eq=False)
-class LasCloud:
-    """Points of a LAS/LAZ file, in m, with their classification and CRS.
-
-    Attributes
-    ----------
-    points : ndarray, shape (N, 3), float64
-        x, y, z in m: the file coordinates multiplied by the CRS units (a file in feet is
-        converted). Use :meth:`crs_coordinates` to get the numbers of the CRS back.
-    classification : ndarray, shape (N,), uint8
-        ASPRS class per point (2 = ground).
-    crs : LasCrs or None
-        None when the file has no CRS record (then units are taken as m).
-    """
-
-    points: np.ndarray
-    classification: np.ndarray
-    crs: LasCrs | None
-
-    def crs_coordinates(self) -> np.ndarray:
-        """Points in the units of the CRS (e.g. US survey feet), shape (N, 3)."""
-        if self.crs is None:
-            return self.points.copy()
-        scale = [self.crs.horizontal_unit_m, self.crs.horizontal_unit_m, self.crs.vertical_unit_m]
-        return self.points / np.asarray(scale)
-
-
-def read_las(path: PathLike) -> LasCloud:
-    """Read a LAS or LAZ file with its classification and coordinate reference system.
-
-    The CRS is read from the WKT (E)VLR and the GeoTIFF key VLR directly, so pyproj is not
-    needed. Linear units come from the WKT ``UNIT``/``LENGTHUNIT`` or else from the GeoTIFF
-    keys ProjLinearUnitsGeoKey and VerticalUnitsGeoKey.
-
-    Parameters
-    ----------
-    path : str or PathLike
-        A ``.las`` or ``.laz`` file.
-
-    Returns
-    -------
-    LasCloud
-        Points in m (converted from the file's linear unit), classes and CRS.
-
-    Raises
-    ------
-    FileFormatError
-        Missing, empty, truncated or corrupt file; a geographic CRS (coordinates in degrees,
-        which cannot be taken as m); or no points.
-    """
-    import laspy
-
-    path = Path(path)
-    _check_readable(path)
-    try:
-        with laspy.open(path) as reader:
-            expected = reader.header.point_count
-            las = reader.read()
-        xyz = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])
-        classification = np.asarray(las.classification, dtype=np.uint8)
-    except _las_errors() as err:
-        raise FileFormatError(
-            path, f"not a readable LAS/LAZ file (truncated or corrupt?): {err}"
-        ) from err
-    if len(xyz) != expected:
-        raise FileFormatError(
-            path, f"truncated: {len(xyz)} of the {expected} points in the header", "points"
-        )
-    if len(xyz) == 0:
-        raise FileFormatError(path, "the file holds no points", field="points")
-    vlrs = list(las.header.vlrs) + list(getattr(las.header, "evlrs", None) or [])
-    crs = _las_crs(path, vlrs)
-    if crs is not None and (crs.horizontal_unit_m != 1.0 or crs.vertical_unit_m != 1.0):
-        log.info(
-            "%s: coordinates in %s converted to m (x, y * %.10g, z * %.10g)",
-            path,
-            crs.unit_name,
-            crs.horizontal_unit_m,
-            crs.vertical_unit_m,
-        )
-        xyz *= np.array([crs.horizontal_unit_m, crs.horizontal_unit_m, crs.vertical_unit_m])
-    return LasCloud(points=xyz, classification=classification, crs=crs)
-
-
-def _las_errors() -> tuple[type[BaseException], ...]:
-    """Exceptions that laspy and its LAZ backend raise on a bad file."""
-    import laspy
-
-    errors: tuple[type[BaseException], ...] = (
-        laspy.errors.LaspyException,
-        ValueError,
-        OSError,
-        EOFError,
-    )
-    try:
-        import lazrs
-    except ImportError:
-        return errors
-    return (*errors, lazrs.LazrsError)
-
-
 def read_kitti_poses(path: PathLike) -> np.ndarray:
     """Read a KITTI odometry ``poses.txt``.
 
@@ -277,7 +162,7 @@ def read_kitti_poses(path: PathLike) -> np.ndarray:
         Missing or empty file, non-numeric text, or not 12 numbers per line.
     """
     path = Path(path)
-    _check_readable(path)
+    check_readable(path)
     rows = _loadtxt(path, delimiter=None, skiprows=0, usecols=None)
     if rows.size == 0:
         raise FileFormatError(path, "the file holds no poses", field="poses")
@@ -295,15 +180,6 @@ def read_kitti_poses(path: PathLike) -> np.ndarray:
 # Readers
 
 
-def _check_readable(path: Path) -> None:
-    if not path.exists():
-        raise FileFormatError(path, "no such file")
-    if not path.is_file():
-        raise FileFormatError(path, "not a regular file")
-    if path.stat().st_size == 0:
-        raise FileFormatError(path, "the file is empty")
-
-
 def _read_npy(path: Path) -> np.ndarray:
     try:
         arr = np.load(path, allow_pickle=False)
@@ -317,9 +193,6 @@ def _read_npy(path: Path) -> np.ndarray:
 
 def _read_npz(path: Path) -> np.ndarray:
     """``points`` of an .npz archive, or its columns x, y, z (integers scaled to m)."""
-    import zipfile
-    import zlib
-
     try:
         loaded = np.load(path, allow_pickle=False)
         if not isinstance(loaded, np.ndarray):
@@ -422,11 +295,17 @@ def _loadtxt(
         ) from err
 
 
+def _open3d_path(path: Path) -> Any:
+    """``path`` as open3d takes it: a str (open3d 0.18 takes only str; later stubs say
+    ``os.PathLike``, which a str also is at run time)."""
+    return str(path)
+
+
 def _read_open3d(path: Path) -> np.ndarray:
     import open3d as o3d
 
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        cloud = o3d.t.io.read_point_cloud(str(path))
+        cloud = o3d.t.io.read_point_cloud(_open3d_path(path))
     if "positions" not in cloud.point:
         raise FileFormatError(
             path, "open3d read no point positions (corrupt, truncated or empty file)", "positions"
@@ -576,34 +455,11 @@ def _write_text(path: Path, points: np.ndarray) -> None:
 def _write_open3d(path: Path, points: np.ndarray) -> None:
     import open3d as o3d
 
-    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.ascontiguousarray(points)))
+    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor.from_numpy(np.ascontiguousarray(points)))
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        ok = o3d.t.io.write_point_cloud(str(path), cloud)
+        ok = o3d.t.io.write_point_cloud(_open3d_path(path), cloud)
     if not ok:
         raise FileFormatError(path, "open3d could not write the file")
-
-
-_LAS_SCALE = 1e-4  # m per integer step: 0.1 mm, far below any roughness of interest
-
-
-def _write_las(path: Path, points: np.ndarray) -> None:
-    import laspy
-
-    if not np.isfinite(points).all():
-        raise InputError("LAS cannot store NaN or infinite coordinates; drop those points first")
-    lo, hi = points.min(axis=0), points.max(axis=0)
-    offsets = np.round((lo + hi) / 2)
-    reach = np.abs(np.stack([lo - offsets, hi - offsets])).max()
-    if reach / _LAS_SCALE >= 2**31 - 1:
-        raise InputError(
-            f"the cloud spans {reach * 2:.0f} m, too wide for LAS at {_LAS_SCALE} m resolution"
-        )
-    header = laspy.LasHeader(point_format=6, version="1.4")
-    header.scales = np.full(3, _LAS_SCALE)
-    header.offsets = offsets
-    las = laspy.LasData(header)
-    las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
-    las.write(str(path))
 
 
 READERS: dict[str, CloudReader] = {
@@ -627,169 +483,7 @@ WRITERS: dict[str, CloudWriter] = {
     ".txt": _write_text,
     ".ply": _write_open3d,
     ".pcd": _write_open3d,
-    ".las": _write_las,
-    ".laz": _write_las,
+    ".las": write_las,
+    ".laz": write_las,
 }
 """Point-cloud writers by lower-case suffix."""
-
-
-# --------------------------------------------------------------------------------------------
-# LAS coordinate reference system without pyproj
-
-# EPSG unit of measure codes used by GeoTIFF keys, in m.
-_EPSG_LENGTH_UNITS = {
-    9001: ("metre", 1.0),
-    9002: ("foot", 0.3048),
-    9003: ("US survey foot", 1200 / 3937),
-}
-_USER_DEFINED = 32767
-_GEOKEY_MODEL_TYPE, _GEOKEY_GEOGRAPHIC, _GEOKEY_PROJECTED = 1024, 2048, 3072
-_GEOKEY_LINEAR_UNITS, _GEOKEY_VERTICAL_UNITS = 3076, 4099
-_MODEL_TYPE_GEOGRAPHIC = 2
-
-
-def _las_crs(path: Path, vlrs: list[object]) -> LasCrs | None:
-    wkt = next((str(v.string) for v in vlrs if hasattr(v, "string") and v.string), None)
-    geokeys: dict[int, int] = {}
-    for v in vlrs:
-        for key in getattr(v, "geo_keys", None) or []:
-            if key.tiff_tag_location == 0 and key.id:  # value stored in the key itself
-                geokeys[key.id] = key.value_offset
-    if wkt is None and not geokeys:
-        log.info("%s: no CRS record; coordinates taken as m", path)
-        return None
-
-    horizontal = vertical = None
-    geographic = geokeys.get(_GEOKEY_MODEL_TYPE) == _MODEL_TYPE_GEOGRAPHIC
-    epsg = None
-    if wkt is not None:
-        horizontal, vertical, wkt_geographic, epsg = _wkt_units(wkt)
-        geographic = wkt_geographic
-    if horizontal is None and (code := geokeys.get(_GEOKEY_LINEAR_UNITS)) in _EPSG_LENGTH_UNITS:
-        horizontal = _EPSG_LENGTH_UNITS[code]
-    if vertical is None and (code := geokeys.get(_GEOKEY_VERTICAL_UNITS)) in _EPSG_LENGTH_UNITS:
-        vertical = _EPSG_LENGTH_UNITS[code]
-    if epsg is None:
-        key = _GEOKEY_GEOGRAPHIC if geographic else _GEOKEY_PROJECTED
-        code = geokeys.get(key)
-        epsg = code if code and code != _USER_DEFINED else None
-    if geographic:
-        raise FileFormatError(
-            path,
-            "geographic CRS (longitude, latitude in degrees); reproject to a projected CRS in m",
-            field="crs",
-        )
-    if horizontal is None:
-        log.warning("%s: CRS without a linear unit; coordinates taken as m", path)
-        horizontal = ("metre", 1.0)
-    if vertical is None:
-        log.debug("%s: no vertical unit; z taken in %s like x and y", path, horizontal[0])
-        vertical = horizontal
-    return LasCrs(
-        wkt=wkt,
-        epsg=epsg,
-        horizontal_unit_m=horizontal[1],
-        vertical_unit_m=vertical[1],
-        unit_name=horizontal[0],
-    )
-
-
-def _wkt_nodes(text: str) -> list[tuple[str, str]]:
-    """Top-level ``KEYWORD[...]`` nodes of a WKT string as (KEYWORD upper-case, inner text)."""
-    nodes: list[tuple[str, str]] = []
-    depth, in_str, boundary, start, keyword = 0, False, 0, 0, ""
-    for i, ch in enumerate(text):
-        if ch == '"':
-            in_str = not in_str
-        elif in_str:
-            continue
-        elif ch in "[(":
-            if depth == 0:
-                keyword, start = text[boundary:i].strip().upper(), i + 1
-            depth += 1
-        elif ch in "])":
-            depth -= 1
-            if depth == 0:
-                nodes.append((keyword, text[start:i]))
-                boundary = i + 1
-        elif ch == "," and depth == 0:
-            boundary = i + 1
-    return nodes
-
-
-def _wkt_args(inner: str) -> list[str]:
-    """Top-level comma-separated plain arguments of a node (strings unquoted, no subnodes)."""
-    args, depth, in_str, cur = [], 0, False, ""
-    for ch in inner:
-        if ch == '"':
-            in_str = not in_str
-        if not in_str and ch in "[(":
-            depth += 1
-        elif not in_str and ch in "])":
-            depth -= 1
-        if ch == "," and depth == 0 and not in_str:
-            args.append(cur.strip().strip('"'))
-            cur = ""
-        else:
-            cur += ch
-    args.append(cur.strip().strip('"'))
-    return [a for a in args if "[" not in a and "(" not in a]
-
-
-_UNIT_NODES = ("UNIT", "LENGTHUNIT")
-_PROJECTED = ("PROJCS", "PROJCRS", "PROJECTEDCRS")
-_GEOGRAPHIC = ("GEOGCS", "GEOGCRS", "GEODCRS", "GEOGRAPHICCRS", "GEODETICCRS")
-_VERTICAL = ("VERT_CS", "VERTCRS", "VERTICALCRS")
-
-
-def _node_unit(inner: str) -> tuple[str, float] | None:
-    """The length unit of a CRS node: a direct UNIT child, else the first axis unit."""
-    children = _wkt_nodes(inner)
-    for keyword, body in children:
-        if keyword in _UNIT_NODES:
-            name, factor = _wkt_args(body)[:2]
-            return name, float(factor)
-    for keyword, body in children:
-        if keyword == "AXIS":
-            for sub, sub_body in _wkt_nodes(body):
-                if sub in _UNIT_NODES:
-                    name, factor = _wkt_args(sub_body)[:2]
-                    return name, float(factor)
-    return None
-
-
-def _node_epsg(inner: str) -> int | None:
-    for keyword, body in _wkt_nodes(inner):
-        if keyword in ("AUTHORITY", "ID"):
-            args = _wkt_args(body)
-            if len(args) >= 2 and args[0].upper() == "EPSG" and args[1].isdigit():
-                return int(args[1])
-    return None
-
-
-def _wkt_units(
-    wkt: str,
-) -> tuple[tuple[str, float] | None, tuple[str, float] | None, bool, int | None]:
-    """(horizontal unit, vertical unit, is geographic, EPSG) of a WKT1 or WKT2 CRS."""
-    try:
-        top = _wkt_nodes(wkt)
-        if not top:
-            return None, None, False, None
-        keyword, inner = top[0]
-        parts = _wkt_nodes(inner) if keyword in ("COMPD_CS", "COMPOUNDCRS") else [top[0]]
-        horizontal = vertical = None
-        geographic = False
-        epsg = _node_epsg(inner)
-        for kw, body in parts:
-            if kw in _PROJECTED:
-                horizontal = _node_unit(body)
-            elif kw in _GEOGRAPHIC:
-                geographic = True
-            elif kw in _VERTICAL:
-                vertical = _node_unit(body)
-            if kw in _PROJECTED + _GEOGRAPHIC and epsg is None:
-                epsg = _node_epsg(body)  # the horizontal part of a compound CRS
-        return horizontal, vertical, geographic and horizontal is None, epsg
-    except (ValueError, IndexError):
-        log.warning("could not parse the units of this WKT: %.200s", wkt)
-        return None, None, False, None

@@ -1,30 +1,25 @@
-"""Grid maps of roughness and terrain class: geometry, named layers, fusion.
+"""Grid maps of roughness and terrain class: geometry, named layers, fusion, near-to-far.
 
-:mod:`rough_map.map.grid` holds the geometry and layer container (and the conversion to
-grid_map's conventions); :mod:`rough_map.map.fusion` fuses the patches of a traverse and
-far-field predictions into layers.
+:mod:`rough_map.map.grid_geometry` says where a map lies (:class:`GridGeometry`);
+:mod:`rough_map.map.grid` holds the layer container and the conversion to grid_map's
+conventions; :mod:`rough_map.map.footprints` finds the cells of a vehicle's patch;
+:mod:`rough_map.map.layers` defines the fused layers and computes their estimates;
+:mod:`rough_map.map.fusion` fuses the patches of a traverse and far-field predictions into
+them. :mod:`rough_map.map.near_far` (imported on its own: it needs OpenCV and
+scikit-learn) learns the look of the near field and predicts the far field.
 """
 
-from rough_map.map.fusion import (
+from rough_map.errors import EmptyMapWarning
+from rough_map.map.footprints import patch_cells, patch_corners
+from rough_map.map.fusion import fuse_cell_probabilities, fuse_patch, fuse_traverse
+from rough_map.map.grid import GridMap, GridMapData, LayerInfo, from_grid_map, to_grid_map
+from rough_map.map.grid_geometry import GridGeometry
+from rough_map.map.layers import (
     GROUPS,
     LEVEL_NAMES,
-    EmptyMapWarning,
     apply_levels,
-    fuse_cell_probabilities,
-    fuse_patch,
-    fuse_traverse,
     init_layers,
-    patch_cells,
-    patch_corners,
     update_estimates,
-)
-from rough_map.map.grid import (
-    GridGeometry,
-    GridMap,
-    GridMapData,
-    LayerInfo,
-    from_grid_map,
-    to_grid_map,
 )
 
 __all__ = [

@@ -18,7 +18,7 @@ Each frame gets
 
 The true world is saved as ``world_truth.npz`` (heights, class map, spacing, origin): the
 heights as int16 steps of at most 10 um with a scale and an offset, the class map deflated
-(:func:`save_world`, :func:`load_world`).
+(:func:`rough_map.io.truth.save_world`, :func:`rough_map.io.truth.load_world`).
 """
 
 from __future__ import annotations
@@ -28,12 +28,22 @@ import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from rough_map.errors import InputError
+from rough_map._files import atomic_output
+from rough_map.config import StereoCalibration, TraverseSpec
+from rough_map.errors import InputError, RoughMapError
+from rough_map.geometry import rotation_matrix
+from rough_map.io.traverse import find_traverse_file, save_traverse
+from rough_map.io.truth import TRUTH_FILE, save_world
+from rough_map.simulate.render import render_stereo
+from rough_map.simulate.textures import TextureSet
 from rough_map.simulate.world import (
     COURSES,
+    Defect,
+    Segment,
     build_world,
     course_layout,
     drive,
@@ -42,10 +52,7 @@ from rough_map.types import HeightField
 
 log = logging.getLogger(__name__)
 
-TRUTH_FILE = "world_truth.npz"
-
-HEIGHT_STEP = 1e-5
-"""Coarsest step in m of the stored true heights; a wider relief is stored as float32."""
+__all__ = ["CLOUD_STEP", "SensorSpec", "save_cloud_npz", "sense_cloud", "simulate"]
 
 CLOUD_STEP = 2e-5
 """Coarsest step in m of a column of a compressed cloud; a wider column stays float32."""
@@ -80,78 +87,6 @@ class SensorSpec:
     imu_noise: float = math.radians(0.1)
 
 
-def save_world(world: HeightField, path: Path) -> None:
-    """Write a world as .npz (atomic).
-
-    The heights are int16 steps of ``(max - min) / 65534``, at most :data:`HEIGHT_STEP`
-    (10 um; 6 um on a random course), with ``height_scale`` and ``height_offset`` in m:
-    half the bytes of float32, and far below the 2 mm cells' roughness. A relief over
-    0.65 m is stored as float32. The heights are not deflated (at 2 mm they hardly
-    compress, by 10 %, and deflating them took longer than simulating the clouds); the
-    class map is, to almost nothing.
-    """
-    heights = world.heights
-    lo, hi = float(heights.min()), float(heights.max())  # NaN if any height is NaN
-    step = (hi - lo) / 65534
-    members: dict[str, tuple[np.ndarray, bool]] = {}
-    if step <= HEIGHT_STEP:  # False for NaN or inf
-        step = step or HEIGHT_STEP
-        q = np.empty(heights.shape, dtype=np.int16)
-        rows = max(1, 2**21 // max(1, heights.shape[1]))  # row blocks: small temporaries
-        for r in range(0, heights.shape[0], rows):
-            q[r : r + rows] = np.rint((heights[r : r + rows] - lo) / step) - 32767
-        members["heights"] = (q, False)
-        members["height_scale"] = (np.float64(step), False)
-        members["height_offset"] = (np.float64(lo + 32767 * step), False)
-    else:
-        log.info("world relief %.3f m: true heights stored as float32", hi - lo)
-        members["heights"] = (heights.astype(np.float32), False)
-    classes = world.classes if world.classes is not None else np.zeros(0)
-    members["classes"] = (classes.astype(np.int8), True)
-    members["spacing"] = (np.float64(world.spacing), False)
-    members["origin"] = (np.asarray(world.origin, dtype=np.float64), False)
-    members["class_names"] = (np.asarray(world.class_names), False)
-    _write_npz(path, members)
-
-
-def _write_npz(path: Path, members: dict[str, tuple[np.ndarray, bool]]) -> None:
-    """An .npz archive (atomic) with each member deflated or stored as asked."""
-    import zipfile
-
-    from rough_map._files import atomic_output
-
-    with atomic_output(path) as tmp, zipfile.ZipFile(tmp, "w", allowZip64=True) as zf:
-        for name, (array, deflate) in members.items():
-            info = zipfile.ZipInfo(f"{name}.npy")
-            info.compress_type = zipfile.ZIP_DEFLATED if deflate else zipfile.ZIP_STORED
-            with zf.open(info, "w", force_zip64=True) as fh:
-                np.lib.format.write_array(fh, np.asanyarray(array), allow_pickle=False)
-
-
-def load_world(path: str | Path) -> HeightField:
-    """Read a world written by :func:`save_world` (float heights of older files too)."""
-    import zipfile
-
-    from rough_map.errors import FileFormatError
-
-    path = Path(path)
-    try:
-        with np.load(path, allow_pickle=False) as d:
-            heights = d["heights"].astype(np.float64)
-            if "height_scale" in d.files:
-                heights *= float(d["height_scale"])
-                heights += float(d["height_offset"])
-            return HeightField(
-                heights,
-                float(d["spacing"]),
-                tuple(float(v) for v in d["origin"]),
-                d["classes"].astype(int) if d["classes"].size else None,
-                tuple(str(c) for c in d["class_names"]),
-            )
-    except (OSError, ValueError, KeyError, AttributeError, zipfile.BadZipFile) as exc:
-        raise FileFormatError(path, f"not a rough_map world file: {exc}") from None
-
-
 def save_cloud_npz(path: str | Path, points: np.ndarray) -> Path:
     """Write a cloud as a compressed .npz of 16-bit columns (atomic).
 
@@ -175,8 +110,6 @@ def save_cloud_npz(path: str | Path, points: np.ndarray) -> Path:
     Path
         The file written.
     """
-    from rough_map._files import atomic_output
-
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0 or pts.dtype.kind not in "fiu":
         raise InputError(
@@ -184,7 +117,7 @@ def save_cloud_npz(path: str | Path, points: np.ndarray) -> Path:
             f"got shape {pts.shape} and dtype {pts.dtype}"
         )
     pts = pts[np.argsort(pts[:, 0], kind="stable")]
-    arrays: dict[str, np.ndarray] = {}
+    arrays: dict[str, Any] = {}  # uint16 or float32 columns, float64 scale and offset
     for k, c in enumerate("xyz"):
         col = pts[:, k].astype(np.float64)
         lo, hi = float(col.min()), float(col.max())
@@ -212,8 +145,6 @@ def sense_cloud(
     ``(sensor.ahead, 0)`` in the vehicle frame are returned. The crop comes after every
     random draw, so the same ``rng`` gives the same points as an uncropped sensor.
     """
-    from rough_map.geometry import rotation_matrix
-
     x, y, z, roll, pitch, yaw = pose
     side = 2 * sensor.half_extent
     n = int(sensor.points_per_cell * (side / 0.008) ** 2)
@@ -288,34 +219,13 @@ def simulate(
     Path
         The ``traverse.json`` written.
     """
-    import cv2
     from tqdm import tqdm
-
-    from rough_map._files import atomic_output
-    from rough_map.config import TraverseSpec
-    from rough_map.io.traverse import find_traverse_file, save_traverse
 
     if course not in COURSES:
         raise InputError(f"unknown course {course!r}; expected one of {COURSES}")
     sensor = sensor or SensorSpec()
-    crop = sensor.cloud_half_extent
-    if crop is not None and not (isinstance(crop, int | float) and 0 < crop < math.inf):
-        raise InputError(f"cloud_half_extent must be a positive length in m or None, got {crop!r}")
-    if crop is not None and crop < 0.47:
-        log.warning(
-            "clouds cropped to %.3f m around the patch centre: the default 0.896 m patch "
-            "needs 0.448 m and a margin for tilt compensation",
-            crop,
-        )
-    out = Path(out_dir)
-    try:
-        find_traverse_file(out)
-    except Exception:
-        pass
-    else:
-        raise InputError(f"{out} already holds a traverse; choose a new --out folder")
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "clouds").mkdir(exist_ok=True)
+    _check_crop(sensor.cloud_half_extent)
+    out = _new_folder(Path(out_dir))
     rng = np.random.default_rng(seed)
     segments, defects = course_layout(course, length, seed)
     world = build_world(segments, defects, spacing=world_spacing, seed=seed, width=width)
@@ -328,98 +238,168 @@ def simulate(
         rate=rate,
         seed=seed,
     )
-    calib = None
-    if images:
-        from rough_map.config import StereoCalibration
-        from rough_map.simulate.render import render_stereo
-        from rough_map.simulate.textures import TextureSet
+    camera = _Camera(world, seed, out) if images else None
+    frames = []
+    bar = tqdm(total=len(poses), desc=f"simulate {course}", unit="frame", disable=not progress)
+    for i, pose in enumerate(poses):
+        frame = _record_frame(out, i, pose, world, sensor, rng, compress)
+        if camera is not None and i % max(1, int(image_every)) == 0:
+            frame.update(camera.record(i, np.asarray(pose[1:])))
+        frames.append(frame)
+        bar.update()
+    bar.close()
+    settings = {
+        "course": course,
+        "seed": seed,
+        "speed_m_s": speed,
+        "rate_hz": rate,
+        "world_spacing_m": world_spacing,
+        "sensor": sensor.__dict__,
+    }
+    calib = camera.calib if camera is not None else None
+    spec = _traverse_spec(settings, sensor, calib, segments, defects, frames, compress)
+    path = save_traverse(spec, out)
+    log.info("wrote %d frames of the %s course to %s", len(frames), course, out)
+    return path
 
-        calib = StereoCalibration.xb3_default()
-        textures = TextureSet(seed=seed)
-        step = max(1, int(round(0.004 / world_spacing)))
-        view = HeightField(
+
+def _check_crop(crop: float | None) -> None:
+    """Refuse a cloud crop that is not a length; warn of one too small for the patch."""
+    if crop is not None and not (isinstance(crop, int | float) and 0 < crop < math.inf):
+        raise InputError(f"cloud_half_extent must be a positive length in m or None, got {crop!r}")
+    if crop is not None and crop < 0.47:
+        log.warning(
+            "clouds cropped to %.3f m around the patch centre: the default 0.896 m patch "
+            "needs 0.448 m and a margin for tilt compensation",
+            crop,
+        )
+
+
+def _new_folder(out: Path) -> Path:
+    """``out`` with a ``clouds`` folder, created; refused if it holds a traverse already."""
+    try:
+        find_traverse_file(out)
+    except RoughMapError:
+        pass
+    else:
+        raise InputError(f"{out} already holds a traverse; choose a new --out folder")
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "clouds").mkdir(exist_ok=True)
+    return out
+
+
+def _record_frame(
+    out: Path,
+    i: int,
+    pose: np.ndarray,
+    world: HeightField,
+    sensor: SensorSpec,
+    rng: np.random.Generator,
+    compress: bool,
+) -> dict[str, Any]:
+    """Sense and write frame ``i``'s cloud; its traverse entry (time, pose, cloud, true
+    label, IMU attitude with noise). ``pose`` is ``(t, x, y, z, roll, pitch, yaw)``."""
+    t, x, y, z, roll, pitch, yaw = (float(v) for v in pose)
+    cloud_rel = f"clouds/{i:06d}.{'npz' if compress else 'npy'}"
+    cloud = sense_cloud(world, np.array([x, y, z, roll, pitch, yaw]), sensor, rng)
+    if compress:
+        save_cloud_npz(out / cloud_rel, cloud)
+    else:
+        with atomic_output(out / cloud_rel) as tmp, open(tmp, "wb") as fh:
+            np.save(fh, cloud)
+    centre = (x + sensor.ahead * math.cos(yaw), y + sensor.ahead * math.sin(yaw))
+    return {
+        "t": t,
+        "pose": {"x": x, "y": y, "z": z, "roll": roll, "pitch": pitch, "yaw": yaw},
+        "cloud": cloud_rel,
+        "label": _class_at(world, *centre),
+        "imu": {
+            "roll": roll + rng.normal(0, sensor.imu_noise),
+            "pitch": pitch + rng.normal(0, sensor.imu_noise),
+        },
+    }
+
+
+class _Camera:
+    """The XB3-like stereo rig of the simulated rover, rendering into ``left/``, ``right/``.
+
+    The renderer gets a 4 mm copy of the world (it sees no finer detail at 1280x960)."""
+
+    def __init__(self, world: HeightField, seed: int, out: Path) -> None:
+        self.calib = StereoCalibration.xb3_default()
+        self.textures = TextureSet(seed=seed)
+        self.seed = seed
+        self.out = out
+        step = max(1, int(round(0.004 / world.spacing)))
+        classes = world.classes[::step, ::step] if world.classes is not None else None
+        self.view = HeightField(
             world.heights[::step, ::step],
             world.spacing * step,
             world.origin,
-            world.classes[::step, ::step],
+            classes,
             world.class_names,
         )
         (out / "left").mkdir(exist_ok=True)
         (out / "right").mkdir(exist_ok=True)
-    frames = []
-    bar = tqdm(total=len(poses), desc=f"simulate {course}", unit="frame", disable=not progress)
-    for i, (t, x, y, z, roll, pitch, yaw) in enumerate(poses):
-        pose6 = np.array([x, y, z, roll, pitch, yaw])
-        cloud_rel = f"clouds/{i:06d}.{'npz' if compress else 'npy'}"
-        cloud = sense_cloud(world, pose6, sensor, rng)
-        if compress:
-            save_cloud_npz(out / cloud_rel, cloud)
-        else:
-            with atomic_output(out / cloud_rel) as tmp, open(tmp, "wb") as fh:
-                np.save(fh, cloud)
-        centre = (x + sensor.ahead * math.cos(yaw), y + sensor.ahead * math.sin(yaw))
-        label = _class_at(world, *centre)
-        frame = {
-            "t": float(t),
-            "pose": {"x": x, "y": y, "z": z, "roll": roll, "pitch": pitch, "yaw": yaw},
-            "cloud": cloud_rel,
-            "label": label,
-            "imu": {
-                "roll": roll + rng.normal(0, sensor.imu_noise),
-                "pitch": pitch + rng.normal(0, sensor.imu_noise),
-            },
-        }
-        if images and i % max(1, int(image_every)) == 0:
-            left, right, _ = render_stereo(
-                view, pose6, calib, textures, seed=seed * 100003 + i, color=True
-            )
-            for side, img in (("left", left), ("right", right)):
-                rel = f"{side}/{i:06d}.png"
-                with atomic_output(out / rel) as tmp:
-                    if not cv2.imwrite(str(tmp), img):
-                        raise InputError(f"could not write {out / rel}")
-                frame[side] = rel
-        frames.append(frame)
-        bar.update()
-    bar.close()
-    spec = TraverseSpec.model_validate(
+
+    def record(self, i: int, pose6: np.ndarray) -> dict[str, str]:
+        """Render and write frame ``i``'s pair from ``(x, y, z, roll, pitch, yaw)``; the
+        traverse entries ``left`` and ``right``."""
+        import cv2
+
+        left, right, _ = render_stereo(
+            self.view, pose6, self.calib, self.textures, seed=self.seed * 100003 + i, color=True
+        )
+        written = {}
+        for side, img in (("left", left), ("right", right)):
+            rel = f"{side}/{i:06d}.png"
+            with atomic_output(self.out / rel) as tmp:
+                if not cv2.imwrite(str(tmp), img):
+                    raise InputError(f"could not write {self.out / rel}")
+            written[side] = rel
+        return written
+
+
+def _traverse_spec(
+    settings: dict[str, Any],
+    sensor: SensorSpec,
+    calib: StereoCalibration | None,
+    segments: list[Segment],
+    defects: list[Defect],
+    frames: list[dict[str, Any]],
+    compress: bool,
+) -> TraverseSpec:
+    """The traverse document of a simulated run (validated)."""
+    metadata = {
+        "simulator": settings,
+        "cloud_extent": _cloud_extent(sensor),
+        "cloud_storage": (
+            {"format": "npz", "dtype": "uint16", "max_step_m": CLOUD_STEP}
+            if compress
+            else {"format": "npy", "dtype": "float32"}
+        ),
+        "segments": [s.__dict__ for s in segments],
+        "defects": [d.__dict__ for d in defects],
+    }
+    json.dumps(metadata)  # the metadata must stay JSON
+    return TraverseSpec.model_validate(
         {
             "schema_version": "1.0",
-            "name": f"sim-{course}-seed{seed}",
+            "name": f"sim-{settings['course']}-seed{settings['seed']}",
             "crs": {"code": "local", "origin": {"lat": 40.3515, "lon": 18.1750, "alt": 50.0}},
             "calibration": calib.model_dump() if calib is not None else None,
             "height_field": TRUTH_FILE,
-            "metadata": {
-                "simulator": {
-                    "course": course,
-                    "seed": seed,
-                    "speed_m_s": speed,
-                    "rate_hz": rate,
-                    "world_spacing_m": world_spacing,
-                    "sensor": sensor.__dict__,
-                },
-                "cloud_extent": _cloud_extent(sensor),
-                "cloud_storage": (
-                    {"format": "npz", "dtype": "uint16", "max_step_m": CLOUD_STEP}
-                    if compress
-                    else {"format": "npy", "dtype": "float32"}
-                ),
-                "segments": [s.__dict__ for s in segments],
-                "defects": [d.__dict__ for d in defects],
-            },
+            "metadata": metadata,
             "frames": frames,
         }
     )
-    path = save_traverse(spec, out)
-    log.info("wrote %d frames of the %s course to %s", len(frames), course, out)
-    json.dumps(spec.metadata)  # the metadata must stay JSON
-    return path
 
 
-def _cloud_extent(sensor: SensorSpec) -> dict:
+def _cloud_extent(sensor: SensorSpec) -> dict[str, Any]:
     """Where the points of the clouds lie (the crop), for ``metadata.cloud_extent``."""
-    full = sensor.cloud_half_extent is None or sensor.cloud_half_extent >= sensor.half_extent
-    h = sensor.half_extent if full else sensor.cloud_half_extent
+    crop = sensor.cloud_half_extent
+    full = crop is None or crop >= sensor.half_extent
+    h = sensor.half_extent if crop is None or full else crop
     return {
         "frame": "vehicle",
         "x_m": [round(sensor.ahead - h, 6), round(sensor.ahead + h, 6)],
@@ -435,7 +415,10 @@ def _cloud_extent(sensor: SensorSpec) -> dict:
     }
 
 
-def _class_at(world: HeightField, x: float, y: float) -> str:
+def _class_at(world: HeightField, x: float, y: float) -> str | None:
+    """Class name of the world cell nearest to (x, y) m; None without a class map."""
+    if world.classes is None:
+        return None
     j = int(round((x - world.origin[0]) / world.spacing))
     i = int(round((y - world.origin[1]) / world.spacing))
     j = min(max(j, 0), world.heights.shape[1] - 1)

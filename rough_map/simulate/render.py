@@ -21,6 +21,7 @@ import logging
 import math
 import time
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from scipy import ndimage
@@ -227,15 +228,7 @@ def render_stereo(
     right_in_left[0, 3] = calib.baseline
     world_right = world_left @ right_in_left
 
-    region = region or _default_region(calib)
-    corners = np.array([[x, y, 0.0, 1.0] for x in region[:2] for y in region[2:]])
-    corners_world = corners @ world_vehicle.T
-    bounds = (
-        corners_world[:, 0].min(),
-        corners_world[:, 0].max(),
-        corners_world[:, 1].min(),
-        corners_world[:, 1].max(),
-    )
+    bounds = _world_bounds(region or _default_region(calib), world_vehicle)
     local_origin = world_left[:3, 3].copy()
     vertices, triangles = _mesh(
         world, bounds, local_origin, calib, (world_left, world_right), (r0, r1)
@@ -243,35 +236,15 @@ def render_stereo(
     if len(triangles) == 0:
         raise InputError("the world has no valid heights in view")
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(vertices), o3d.core.Tensor(triangles))
+    scene.add_triangles(_tensor(vertices), _tensor(triangles))
     t_mesh = time.perf_counter()
 
-    sun = np.array(
-        [
-            math.cos(SUN_ELEVATION) * math.cos(SUN_AZIMUTH),
-            math.cos(SUN_ELEVATION) * math.sin(SUN_AZIMUTH),
-            math.sin(SUN_ELEVATION),
-        ]
-    )
     rng = np.random.default_rng(seed)
     shape = (calib.height, calib.width, 3) if color else (calib.height, calib.width)
     images = []
     depth_left = np.full((calib.height, calib.width), np.nan, dtype=np.float32)
     for camera, pose_cam in (("left", world_left), ("right", world_right)):
-        rays = _pixel_rays(calib, (r0, r1), pose_cam[:3, :3], pose_cam[:3, 3] - local_origin)
-        hit = scene.cast_rays(o3d.core.Tensor(rays))
-        t = hit["t_hit"].numpy().reshape(r1 - r0, calib.width)
-        radiance = _shade(
-            world,
-            textures,
-            calib,
-            rays,
-            t,
-            hit["primitive_normals"].numpy(),
-            local_origin,
-            sun,
-            color,
-        )
+        radiance, t = _cast(scene, world, textures, calib, pose_cam, local_origin, (r0, r1), color)
         image = np.zeros(shape, dtype=np.float32)
         image[r0:r1] = radiance * np.float32(EXPOSURE)
         images.append(_sensor(image, r0, r1, rng, noise_sigma, psf_sigma))
@@ -285,6 +258,59 @@ def render_stereo(
         time.perf_counter() - t_start,
     )
     return images[0], images[1], depth_left
+
+
+def _world_bounds(
+    region: tuple[float, float, float, float], world_vehicle: np.ndarray
+) -> tuple[float, float, float, float]:
+    """World ``(x0, x1, y0, y1)`` in m of a vehicle-frame rectangle on the ground."""
+    corners = np.array([[x, y, 0.0, 1.0] for x in region[:2] for y in region[2:]])
+    corners_world = corners @ world_vehicle.T
+    return (
+        corners_world[:, 0].min(),
+        corners_world[:, 0].max(),
+        corners_world[:, 1].min(),
+        corners_world[:, 1].max(),
+    )
+
+
+def _tensor(array: np.ndarray) -> Any:
+    """An open3d tensor on the CPU holding ``array`` (float32 or uint32)."""
+    import open3d as o3d
+
+    dtype = {np.dtype(np.float32): o3d.core.float32, np.dtype(np.uint32): o3d.core.uint32}
+    return o3d.core.Tensor(array, dtype[array.dtype], o3d.core.Device("CPU:0"))
+
+
+def _cast(
+    scene: Any,
+    world: HeightField,
+    textures: TextureSet,
+    calib: StereoCalibration,
+    pose_cam: np.ndarray,
+    local_origin: np.ndarray,
+    rows: tuple[int, int],
+    color: bool,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Radiance (0..1) and hit distance (m; inf for no hit) of the pixels of ``rows`` of
+    the camera at ``pose_cam`` (4x4 camera -> world)."""
+    r0, r1 = rows
+    rays = _pixel_rays(calib, rows, pose_cam[:3, :3], pose_cam[:3, 3] - local_origin)
+    hit = scene.cast_rays(_tensor(rays))
+    t = hit["t_hit"].numpy().reshape(r1 - r0, calib.width)
+    normals = hit["primitive_normals"].numpy()
+    radiance = _shade(world, textures, calib, rays, t, normals, local_origin, _SUN, color)
+    return radiance, t
+
+
+#: Unit vector towards the sun, world frame.
+_SUN = np.array(
+    [
+        math.cos(SUN_ELEVATION) * math.cos(SUN_AZIMUTH),
+        math.cos(SUN_ELEVATION) * math.sin(SUN_AZIMUTH),
+        math.sin(SUN_ELEVATION),
+    ]
+)
 
 
 def _shade(

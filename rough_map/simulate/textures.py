@@ -241,12 +241,12 @@ class TextureSet:
                     np.float32(amplitude) * weight[sel] * value_noise(x[sel], y[sel], step, salt)
                 )
         if texture.pebbles is not None:
-            weight = (
+            reach: np.floating | np.ndarray = (
                 np.float32(1.0)
                 if footprint is None
                 else np.clip(texture.pebbles[0] / footprint - 1.0, 0.0, 1.0).astype(np.float32)
             )
-            total *= 1.0 + weight * self._pebbles(texture.pebbles, name, x, y)
+            total *= 1.0 + reach * self._pebbles(texture.pebbles, name, x, y)
         return total
 
     def _pebbles(

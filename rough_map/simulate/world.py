@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -81,7 +82,7 @@ def course_layout(
         return segs, [Defect("manhole", at, 0.0)]
     rng = np.random.default_rng(seed)
     total = length or 120.0
-    segs: list[Segment] = []
+    segs = []
     x = 0.0
     previous = None
     while x < total:
@@ -97,8 +98,8 @@ def course_layout(
 
 
 def build_world(
-    segments: list[Segment],
-    defects: list[Defect] = (),
+    segments: Sequence[Segment],
+    defects: Sequence[Defect] = (),
     *,
     width: float = 4.0,
     spacing: float = 0.004,
@@ -144,12 +145,38 @@ def build_world(
     nx = int(math.ceil((x1 - x0) / spacing)) + 1
     ny = int(math.ceil(width / spacing)) + 1
     xs = x0 + spacing * np.arange(nx)
+    heights, class_idx = _blend_segments(segments, xs, ny, spacing, rng, blend=blend, lead=lead)
+    if envelope_sigma > 0:
+        env = _envelope((ny, nx), spacing, envelope_length, rng)
+        heights *= np.exp(0.5 * envelope_sigma * env)
+    origin = (x0, -0.5 * (ny - 1) * spacing)
+    for d in defects:
+        _add_defect(heights, d, origin, spacing)
+    classes = np.broadcast_to(class_idx[None, :], (ny, nx)).copy()
+    return HeightField(heights, spacing, origin, classes, CLASS_NAMES)
+
+
+def _blend_segments(
+    segments: Sequence[Segment],
+    xs: np.ndarray,
+    ny: int,
+    spacing: float,
+    rng: np.random.Generator,
+    *,
+    blend: float,
+    lead: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Heights (ny, len(xs)) in m of the segments' surfaces, cross-faded over ``blend`` m
+    where they meet, and the class index of each column (x ``xs`` in m)."""
+    nx = xs.size
+    x0 = xs[0]
     heights = np.zeros((ny, nx))
     weight_sum = np.zeros(nx)
     class_idx = np.zeros(nx, dtype=np.int16)
     for k, seg in enumerate(segments):
-        lo = seg.start - (lead if k == 0 else blend)
-        hi = seg.end + (lead if k == len(segments) - 1 else blend)
+        first, last = k == 0, k == len(segments) - 1
+        lo = seg.start - (lead if first else blend)
+        hi = seg.end + (lead if last else blend)
         j0 = max(0, int((lo - x0) / spacing))
         j1 = min(nx, int(math.ceil((hi - x0) / spacing)) + 1)
         # Generate on a padded, FFT-friendly extent so the segment is not periodic.
@@ -162,41 +189,39 @@ def build_world(
             0.0,
             1.0,
         )
-        if k == 0:
+        if first:
             ramp[xs[j0:j1] < seg.start] = 1.0
-        if k == len(segments) - 1:
+        if last:
             ramp[xs[j0:j1] > seg.end] = 1.0
         heights[:, j0:j1] += field * ramp[None, :]
         weight_sum[j0:j1] += ramp
         inside = (xs >= seg.start) & (xs < seg.end)
-        if k == 0:
+        if first:
             inside |= xs < seg.start
-        if k == len(segments) - 1:
+        if last:
             inside |= xs >= seg.end
         class_idx[inside] = CLASS_NAMES.index(terrain.surface_spec(seg.surface).name)
     heights /= np.maximum(weight_sum, 1e-9)[None, :]
-    if envelope_sigma > 0:
-        env = _envelope((ny, nx), spacing, envelope_length, rng)
-        heights *= np.exp(0.5 * envelope_sigma * env)
-    origin = (x0, -0.5 * (ny - 1) * spacing)
-    ys = origin[1] + spacing * np.arange(ny)
-    for d in defects:
-        add = terrain.DEFECTS.get(d.kind)
-        if add is None:
-            raise InputError(
-                f"unknown defect {d.kind!r}; expected one of {sorted(terrain.DEFECTS)}"
-            )
-        j = int((d.x - x0) / spacing)
-        i = int((d.y - origin[1]) / spacing)
-        half = int(0.6 / spacing)
-        sl = (slice(max(0, i - half), i + half), slice(max(0, j - half), j + half))
-        local = heights[sl]
-        cx = (j - sl[1].start) * spacing
-        cy = (i - sl[0].start) * spacing
-        heights[sl] = add(local, spacing, (cx, cy))
-    classes = np.broadcast_to(class_idx[None, :], (ny, nx)).copy()
-    del ys
-    return HeightField(heights, spacing, origin, classes, CLASS_NAMES)
+    return heights, class_idx
+
+
+def _add_defect(
+    heights: np.ndarray, defect: Defect, origin: tuple[float, float], spacing: float
+) -> None:
+    """Carve ``defect`` into ``heights`` (in place; cell [0, 0] at world ``origin``, m)."""
+    add = terrain.DEFECTS.get(defect.kind)
+    if add is None:
+        raise InputError(
+            f"unknown defect {defect.kind!r}; expected one of {sorted(terrain.DEFECTS)}"
+        )
+    j = int((defect.x - origin[0]) / spacing)
+    i = int((defect.y - origin[1]) / spacing)
+    half = int(0.6 / spacing)
+    sl = (slice(max(0, i - half), i + half), slice(max(0, j - half), j + half))
+    local = heights[sl]
+    cx = (j - sl[1].start) * spacing
+    cy = (i - sl[0].start) * spacing
+    heights[sl] = add(local, spacing, (cx, cy))
 
 
 def _envelope(

@@ -27,7 +27,12 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+from rough_map._files import atomic_output
+from rough_map.classify.model import MODEL_FORMAT, TerrainModel
+from rough_map.classify.spectral import FEATURE_DOC, INPUT_SCALARS
+from rough_map.config import jsonable
 from rough_map.errors import ModelError
+from rough_map.resources import model_base, shipped_models
 
 log = logging.getLogger(__name__)
 
@@ -35,6 +40,7 @@ __all__ = [
     "CARD_SUFFIX",
     "MODEL_SUFFIX",
     "TRUSTED_TYPES",
+    "build_card",
     "load_terrain_model",
     "model_paths",
     "read_card",
@@ -46,12 +52,14 @@ MODEL_SUFFIX = ".skops"
 CARD_SUFFIX = ".card.json"
 CARD_FORMAT = "rough_map model card 1"
 
-#: Types that skops does not trust by default and that a rough_map model file may hold.
-#: Anything else in a file is refused.
+#: Types that skops does not trust by default and that a rough_map model file may hold,
+#: named by the module that defines them (a file records that path). Anything else in a
+#: file is refused.
 TRUSTED_TYPES: tuple[str, ...] = (
-    "rough_map.classify.SpectralFeatures",
-    "rough_map.classify.TerrainModel",
-    "rough_map.filter.PathFilter",
+    "rough_map.classify.model.TerrainModel",
+    "rough_map.classify.spectral.SpectralFeatures",
+    "rough_map.filter.defects.IsolatedSpikes",
+    "rough_map.filter.path_filter.PathFilter",
     "sklearn.calibration._CalibratedClassifier",
     "sklearn.calibration._SigmoidCalibration",
     "sklearn.calibration._TemperatureScaling",
@@ -105,20 +113,6 @@ def _versions() -> dict[str, str]:
     return out
 
 
-def _jsonable(value: Any) -> Any:
-    import numpy as np
-
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _jsonable(value.tolist())
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
-
-
 def build_card(model: Any, model_file: Path, extra: dict[str, Any] | None = None) -> dict:
     """The model card of a fitted model already written to ``model_file``.
 
@@ -136,9 +130,6 @@ def build_card(model: Any, model_file: Path, extra: dict[str, Any] | None = None
     dict
         JSON-ready card.
     """
-    from rough_map.classify import FEATURE_DOC, INPUT_SCALARS
-
-    flt = model.filter_
     features = model.feature_names
     edges = model.classifier_.named_steps["features"].band_edges()
 
@@ -169,20 +160,9 @@ def build_card(model: Any, model_file: Path, extra: dict[str, Any] | None = None
             "class_weight": "balanced",
             "calibration": "temperature scaling, folds of whole traverses",
             "level_jitter_log10": float(model.level_jitter),
-            "waviness_jitter": float(getattr(model, "waviness_jitter", 0.0)),
+            "waviness_jitter": float(model.waviness_jitter),
         },
-        "filter": {
-            "mode": model.mode,
-            "evidence_per_m": float(model.evidence_per_m_),
-            "emission": "min(1, evidence_per_m * step_m) * log p(class | frame)",
-            "defect_ratio": getattr(model, "defect_ratio", None),
-            "switch_rate_per_m": {
-                str(c): float(-flt.generator_[i, i]) for i, c in enumerate(flt.classes_)
-            },
-            "class_prior": {
-                str(c): float(p) for c, p in zip(flt.classes_, flt.class_prior_, strict=True)
-            },
-        },
+        "filter": _filter_card(model),
         "roughness_levels": {
             "levels": list(model.level_names_),
             "thresholds_m3_per_rad": list(model.level_thresholds_),
@@ -195,7 +175,28 @@ def build_card(model: Any, model_file: Path, extra: dict[str, Any] | None = None
     }
     if extra:
         card.update(extra)
-    return _jsonable(card)
+    return jsonable(card)  # NaN (e.g. an undefined CV score) becomes null
+
+
+def _filter_card(model: Any) -> dict[str, Any]:
+    """The card's description of the path filter and the defect detector."""
+    flt = model.filter_
+    card: dict[str, Any] = {
+        "mode": model.mode,
+        "evidence_per_m": None if flt is None else float(model.evidence_per_m_),
+        "emission": "min(1, evidence_per_m * step_m) * log p(class | frame)",
+        "defect_ratio": getattr(model.defects, "ratio", None),
+    }
+    if flt is None:
+        card["emission"] = None  # no path filter: the filtered class is the raw one
+        return card
+    card["switch_rate_per_m"] = {
+        str(c): float(-flt.generator_[i, i]) for i, c in enumerate(flt.classes_)
+    }
+    card["class_prior"] = {
+        str(c): float(p) for c, p in zip(flt.classes_, flt.class_prior_, strict=True)
+    }
+    return card
 
 
 def save_terrain_model(
@@ -223,9 +224,6 @@ def save_terrain_model(
         The model is not a fitted TerrainModel.
     """
     import skops.io as sio
-
-    from rough_map._files import atomic_output
-    from rough_map.classify import TerrainModel
 
     if not isinstance(model, TerrainModel) or not hasattr(model, "classifier_"):
         raise ModelError(f"only a fitted TerrainModel can be saved; got {type(model).__name__}")
@@ -267,8 +265,6 @@ def read_card(name: str | Path) -> dict[str, Any]:
 
 def _resolve(name: str | Path) -> tuple[Path, Path]:
     """Model and card files of a path, or of a shipped model's bare name."""
-    from rough_map.resources import model_base, shipped_models
-
     model_file, card_file = model_paths(name)
     if model_file.is_file():
         return model_file, card_file
@@ -303,8 +299,6 @@ def load_terrain_model(name: str | Path, *, verify: bool = True) -> Any:
         differs from the card's; an object other than a TerrainModel of this format.
     """
     import skops.io as sio
-
-    from rough_map.classify import MODEL_FORMAT, TerrainModel
 
     model_file, card_file = _resolve(name)
     digest = sha256_file(model_file)

@@ -1,0 +1,563 @@
+"""The terrain model: classifier, path filter, defect detector and roughness levels.
+
+:class:`TerrainModel` is a scikit-learn estimator composed like scikit-learn's: the path
+filter and the defect detector are components given to it (``path_filter``, ``defects``),
+duck typed, so that this layer does not depend on :mod:`rough_map.filter`, which sits above
+it. The configuration that ships (the classifier of :func:`make_classifier` with a
+:class:`rough_map.filter.PathFilter` and :class:`rough_map.filter.IsolatedSpikes`) is built
+by :func:`rough_map.filter.make_terrain_model`.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from numbers import Integral, Real
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from sklearn.base import BaseEstimator, clone
+
+from rough_map import errors
+from rough_map.classify.crossval import (
+    cross_validated_report,
+    filtered_held_out,
+    scored_frames,
+)
+from rough_map.classify.evidence import (
+    choose_evidence_per_m,
+    emission_log_likelihood,
+    frame_steps,
+)
+from rough_map.classify.levels import RoughnessLevels, roughness_level
+from rough_map.classify.spectral import feature_matrix
+from rough_map.classify.training import (
+    CLASSIFIERS,
+    EXCLUDED_FEATURES,
+    ClassifierRecipe,
+    Folds,
+    TrainingFrames,
+    held_out_posteriors,
+    labels_of,
+    training_hash,
+    traverse_folds,
+)
+from rough_map.classify.validation import check_fitted
+from rough_map.patch import Extraction
+
+log = logging.getLogger(__name__)
+
+__all__ = ["MODEL_FORMAT", "MODES", "TerrainModel", "TerrainPrediction"]
+
+#: Identifies the object layout of :class:`TerrainModel`; a loaded model must match it.
+#: 2: the path filter and the defect detector are components (``path_filter``, ``defects``).
+MODEL_FORMAT = "rough_map.TerrainModel/2"
+
+#: Filter modes of :meth:`TerrainModel.predict`.
+MODES = ("forward", "smooth", "viterbi")
+
+
+@dataclass(frozen=True, eq=False)
+class TerrainPrediction:
+    """Per-frame output of :meth:`TerrainModel.predict`.
+
+    Attributes
+    ----------
+    classes : ndarray of str, shape (K,)
+        Class names, the columns of the probabilities.
+    valid : ndarray of bool, shape (n,)
+        Frames with a valid patch (the others get no raw class, and a predict step only in
+        the filter).
+    raw_proba : ndarray, shape (n, K)
+        Calibrated classifier posteriors; NaN rows for invalid frames.
+    filtered_proba : ndarray, shape (n, K)
+        Posteriors after the path filter (forward filter or smoother, per ``mode``).
+    raw_class : ndarray of str, shape (n,)
+        Argmax of ``raw_proba``; ``""`` for invalid frames.
+    filtered_class : ndarray of str, shape (n,)
+        Argmax of ``filtered_proba``, or the Viterbi path when ``mode == "viterbi"``.
+    level : ndarray of str, shape (n,)
+        Roughness level from R; ``""`` for invalid frames.
+    distance : ndarray, shape (n,)
+        Distance travelled along the path in m.
+    mode : str
+        Filter mode used.
+    defect : ndarray of bool, shape (n,)
+        Frames that see an isolated defect (a short spike of R,
+        the model's ``defects`` detector): the filter gives them a predict step
+        only, so that a manhole does not turn the ground around it into rough terrain.
+        Their raw class and roughness stay as measured. All False in ``"forward"`` mode
+        or when the model has no ``defects`` detector.
+    """
+
+    classes: NDArray[np.object_]
+    valid: NDArray[np.bool_]
+    raw_proba: NDArray[np.float64]
+    filtered_proba: NDArray[np.float64]
+    raw_class: NDArray[np.object_]
+    filtered_class: NDArray[np.object_]
+    level: NDArray[np.object_]
+    distance: NDArray[np.float64]
+    mode: str
+    defect: NDArray[np.bool_] | None = None
+
+    def __post_init__(self) -> None:
+        if self.defect is None:
+            object.__setattr__(self, "defect", np.zeros(len(self.valid), dtype=bool))
+
+    @property
+    def raw_confidence(self) -> NDArray[np.float64]:
+        """Probability of the raw class (NaN for invalid frames)."""
+        with np.errstate(invalid="ignore"):
+            return np.where(
+                self.valid, np.nanmax(np.nan_to_num(self.raw_proba, nan=-1.0), 1), np.nan
+            )
+
+    @property
+    def filtered_confidence(self) -> NDArray[np.float64]:
+        """Filtered probability of the filtered class."""
+        idx = np.searchsorted(self.classes, self.filtered_class)
+        return self.filtered_proba[np.arange(len(idx)), idx]
+
+
+class TerrainModel(BaseEstimator):
+    """Terrain class and roughness level along a traverse: everything a model file holds.
+
+    ``fit`` takes labelled feature tables (one per traverse), cross-validates the classifier
+    with whole traverses as folds, fits it on all frames, and fits the path filter on the
+    held-out posteriors (so that its evidence per metre matches what the classifier does on
+    unseen ground). ``predict`` gives, for every frame of a table, the raw and the filtered
+    class with their probabilities, the frames of isolated defects and the roughness level.
+
+    The path filter and the defect detector are components, as scikit-learn composes
+    estimators; :func:`rough_map.filter.make_terrain_model` builds the configuration that
+    ships. Without them (``None``, the default) there is no smoothing along the path: the
+    filtered class is the raw one.
+
+    Parameters
+    ----------
+    kind : {"logistic", "hgb", "forest"}, default "logistic"
+        Base classifier (see :func:`make_classifier`).
+    mode : {"forward", "smooth", "viterbi"}, default "smooth"
+        Filter mode used by :meth:`predict` unless it is given one: ``"forward"`` is the
+        online filter (each frame sees only the frames before it), ``"smooth"`` the
+        forward-backward smoother and ``"viterbi"`` the most probable class sequence, for
+        recorded traverses. The fitted path filter runs in this mode (its own ``mode`` is
+        set to it).
+    level_names : tuple of str, default ("low", "medium", "high")
+        Roughness levels, smoothest first (paper section 5.5).
+    level_thresholds : tuple of float, optional
+        Upper bounds on R in m^3/rad of all but the last level; default the ISO 8608 C/D
+        and E/F boundaries (see :class:`RoughnessLevels`).
+    cv : int, default 5
+        Cross-validation folds (whole traverses; fewer if there are fewer traverses).
+    evidence_per_m : float or "auto", default "auto"
+        Weight of the classifier's evidence per metre travelled, 1/m (see
+        :func:`emission_log_likelihood`). "auto" takes the value of
+        :data:`EVIDENCE_GRID` with the best filtered macro-F1 on the held-out posteriors
+        (:func:`~rough_map.classify.evidence.choose_evidence_per_m`).
+    exclude : tuple of str, default EXCLUDED_FEATURES
+        Features of :class:`SpectralFeatures` the classifier does not see.
+    level_jitter : float, default 0.4
+        Standard deviation in log10 units of the random scaling of the terrain in the
+        training copies (:func:`jitter_levels`); 0 trains on the frames as they are.
+    waviness_jitter : float, default 0.05
+        Standard deviation of the random shift of w in the training copies.
+    jitter_copies : int, default 3
+        Jittered copies of every training frame.
+    path_filter : estimator or None, default None
+        The path filter, cloned in ``fit`` and fitted on the log likelihoods of
+        :func:`emission_log_likelihood` (a :class:`rough_map.filter.PathFilter` with
+        ``inputs="log_likelihood"``): anything with ``fit(X, y, distance=, groups=)``,
+        ``predict`` and ``predict_proba`` taking ``(X, distance=, groups=, valid=)``, and a
+        ``mode`` parameter. None: no smoothing.
+    defects : callable or None, default None
+        Detector of isolated defects, ``defects(R, distance) -> bool per frame`` with R in
+        m^3/rad and distance in m (a :class:`rough_map.filter.IsolatedSpikes`): in
+        ``"smooth"`` and ``"viterbi"`` modes the filter does not take the class of those
+        frames. None: no test.
+    extraction : Extraction or dict, optional
+        How the feature tables were computed (:class:`rough_map.patch.Extraction`: patch
+        geometry in m, tilt, estimator), stored (as ``Extraction.to_dict``) so that
+        ``classify`` and ``evaluate`` compute features the same way. Default the paper's.
+    random_state : int, default 0
+        Seed of the classifier and of the jitter.
+
+    Attributes
+    ----------
+    classes_ : ndarray of str
+        Terrain classes, from the training labels.
+    classifier_ : sklearn.pipeline.Pipeline
+        The fitted pipeline of :func:`make_classifier`.
+    filter_ : estimator or None
+        The fitted path filter (a clone of ``path_filter``), fed by
+        :func:`emission_log_likelihood`.
+    evidence_per_m_ : float or None
+        Evidence per metre travelled of the filter's emissions, 1/m (None without a filter).
+    omega_ : ndarray
+        Wavenumbers in rad/m of the spectrum the model expects.
+    level_names_ : tuple of str
+        Roughness levels.
+    level_thresholds_ : tuple of float
+        Their upper thresholds on R in m^3/rad.
+    extraction_ : dict
+        Feature extraction settings (``Extraction.to_dict``).
+    cv_report_ : dict
+        Cross-validated metrics (see :meth:`fit`).
+    training_ : dict
+        Traverses, frame counts and :func:`training_hash` of the training data.
+    format_ : str
+        :data:`MODEL_FORMAT`.
+    """
+
+    def __init__(
+        self,
+        kind: str = "logistic",
+        mode: str = "smooth",
+        level_names: tuple[str, ...] = ("low", "medium", "high"),
+        level_thresholds: tuple[float, ...] | None = None,
+        cv: int = 5,
+        evidence_per_m: float | str = "auto",
+        exclude: tuple[str, ...] = EXCLUDED_FEATURES,
+        level_jitter: float = 0.4,
+        waviness_jitter: float = 0.05,
+        jitter_copies: int = 3,
+        path_filter: Any = None,
+        defects: Any = None,
+        extraction: dict[str, Any] | None = None,
+        random_state: int = 0,
+    ) -> None:
+        self.kind = kind
+        self.mode = mode
+        self.level_names = level_names
+        self.level_thresholds = level_thresholds
+        self.cv = cv
+        self.evidence_per_m = evidence_per_m
+        self.exclude = exclude
+        self.level_jitter = level_jitter
+        self.waviness_jitter = waviness_jitter
+        self.jitter_copies = jitter_copies
+        self.path_filter = path_filter
+        self.defects = defects
+        self.extraction = extraction
+        self.random_state = random_state
+
+    # ---------------------------------------------------------------- fit
+
+    def _check_params(self) -> RoughnessLevels:
+        """Raise InputError on bad parameters; the roughness levels."""
+        if self.kind not in CLASSIFIERS:
+            raise errors.InputError(f"kind must be one of {CLASSIFIERS}; got {self.kind!r}")
+        if self.mode not in MODES:
+            raise errors.InputError(f"mode must be forward, smooth or viterbi; got {self.mode!r}")
+        per_m = self.evidence_per_m
+        if not (
+            per_m == "auto" or (isinstance(per_m, Real) and math.isfinite(per_m) and per_m > 0)
+        ):
+            raise errors.InputError(
+                f"evidence_per_m must be 'auto' or a positive number (1/m); got {per_m!r}"
+            )
+        if not (isinstance(self.cv, Integral) and self.cv >= 2):
+            raise errors.InputError(f"cv must be an integer >= 2; got {self.cv!r}")
+        for name in ("level_jitter", "waviness_jitter"):
+            value = getattr(self, name)
+            if not (isinstance(value, Real) and math.isfinite(value) and value >= 0):
+                raise errors.InputError(f"{name} must be >= 0; got {value!r}")
+        if not (isinstance(self.jitter_copies, Integral) and self.jitter_copies >= 0):
+            raise errors.InputError(
+                f"jitter_copies must be an integer >= 0; got {self.jitter_copies!r}"
+            )
+        _check_components(self.path_filter, self.defects)
+        names = tuple(str(n) for n in self.level_names)
+        thresholds = (
+            tuple(float(v) for v in RoughnessLevels().values())
+            if self.level_thresholds is None
+            else tuple(float(v) for v in self.level_thresholds)
+        )
+        return RoughnessLevels(levels=names, thresholds=thresholds)
+
+    def fit(self, X: Sequence[Any], y: None = None) -> TerrainModel:
+        """Train on labelled traverses.
+
+        Frames without a label are left out; frames without a valid patch train the
+        switching model of the filter but not the classifier.
+
+        Parameters
+        ----------
+        X : sequence of FeatureTable
+            One per traverse, computed with one patch geometry, with ``label`` set.
+        y : None
+            The labels are the tables' ``label`` column.
+
+        Returns
+        -------
+        TerrainModel
+            ``self``, fitted. ``cv_report_`` holds the cross-validated metrics: ``scheme``,
+            ``n_splits``, ``frames``, and under ``raw`` and ``filtered`` the ``accuracy``,
+            ``macro_f1`` and ``f1`` per class, plus ``per_fold`` results.
+
+        Raises
+        ------
+        InputError
+            No traverses, a traverse without labels, fewer than two classes, mixed patch
+            geometries, bad parameters, or ``y`` given.
+        """
+        if y is not None:
+            raise errors.InputError(
+                "TerrainModel.fit takes its labels from the tables' 'label' column; y must be None"
+            )
+        levels = self._check_params()
+        tables = list(X)
+        frames = TrainingFrames.from_tables(tables)
+        jitter = self.level_jitter > 0 or self.waviness_jitter > 0
+        recipe = ClassifierRecipe(
+            kind=self.kind,
+            omega=frames.omega,
+            exclude=tuple(self.exclude),
+            random_state=self.random_state,
+            level_jitter=float(self.level_jitter),
+            waviness_jitter=float(self.waviness_jitter),
+            copies=int(self.jitter_copies) if jitter else 0,
+        )
+        rng = np.random.default_rng(self.random_state)
+        folds = traverse_folds(frames.traverse, self.cv)
+        held_out = held_out_posteriors(recipe, frames, folds, rng)
+        v = frames.valid
+        self.classifier_ = recipe.fit(frames.X[v], frames.y[v], folds.groups[v], rng)
+        steps = frame_steps(frames.distance, folds.groups)
+        self.filter_, self.evidence_per_m_ = self._fit_filter(frames, folds, held_out, steps)
+        filtered = filtered_held_out(
+            self.filter_, held_out, frames, folds, steps, self.evidence_per_m_
+        )
+        self.cv_report_ = cross_validated_report(held_out, filtered, frames, folds, self.mode)
+        self.classes_ = np.unique(frames.y)
+        self.omega_ = frames.omega
+        self.level_names_ = levels.levels
+        self.level_thresholds_ = tuple(float(t) for t in levels.values())
+        self.extraction_ = Extraction.from_dict(self.extraction).to_dict()
+        self.training_ = _training_summary(tables, frames)
+        self.format_ = MODEL_FORMAT
+        log.info(
+            "cross-validated (%s): raw macro-F1 %.3f, filtered macro-F1 %.3f on %d frames",
+            self.cv_report_["scheme"],
+            self.cv_report_["raw"]["macro_f1"],
+            self.cv_report_["filtered"]["macro_f1"],
+            self.cv_report_["frames"],
+        )
+        return self
+
+    def _fit_filter(
+        self,
+        frames: TrainingFrames,
+        folds: Folds,
+        held_out: NDArray[np.float64],
+        steps: NDArray[np.float64],
+    ) -> tuple[Any, float | None]:
+        """The fitted path filter and its evidence per metre (None, None without a filter).
+
+        The switching model and the class prior come from the labels, the evidence per
+        metre from the held-out posteriors. The classifier is trained with balanced class
+        weights, so its posteriors are likelihoods up to a constant: how often each class
+        was driven in the training traverses is an accident of the courses, and the
+        filter's switching model is where prior knowledge of the path belongs.
+        """
+        if self.path_filter is None:
+            return None, None
+        flt = clone(self.path_filter).set_params(mode=self.mode)
+        d, g = frames.distance, folds.groups
+        flt.fit(emission_log_likelihood(held_out, steps, 1.0), frames.y, distance=d, groups=g)
+        if self.evidence_per_m != "auto":
+            return flt, float(self.evidence_per_m)
+        scored = scored_frames(held_out)
+        per_m = choose_evidence_per_m(
+            flt, held_out, steps, frames.y, distance=d, groups=g, scored=scored
+        )
+        return flt, per_m
+
+    # ---------------------------------------------------------------- predict
+
+    def _check_fitted(self) -> None:
+        check_fitted(self, "classifier_", "this TerrainModel is not fitted; call fit() first")
+
+    @property
+    def levels_(self) -> RoughnessLevels:
+        """The roughness levels of the model, as :class:`RoughnessLevels`."""
+        self._check_fitted()
+        return RoughnessLevels(levels=self.level_names_, thresholds=self.level_thresholds_)
+
+    @property
+    def feature_names(self) -> list[str]:
+        """Names of the features the classifier sees (see :data:`FEATURE_DOC`)."""
+        self._check_fitted()
+        return [str(n) for n in self.classifier_.named_steps["features"].get_feature_names_out()]
+
+    def check_labels(self, labels: ArrayLike, where: str = "the data") -> None:
+        """Raise :class:`~rough_map.errors.ModelError` if labels hold classes the model lacks.
+
+        Parameters
+        ----------
+        labels : array_like of str
+            Labels; ``""`` (unlabelled) is ignored.
+        where : str
+            What to name in the message (e.g. the traverse).
+        """
+        self._check_fitted()
+        lab = np.asarray(labels, dtype=object)
+        unknown = sorted({str(v) for v in lab[lab != ""]} - {str(c) for c in self.classes_})
+        if unknown:
+            raise errors.ModelError(
+                f"{where} has labels the model does not know: {unknown}; it was trained on "
+                f"{[str(c) for c in self.classes_]}"
+            )
+
+    def predict(self, table: Any, *, mode: str | None = None) -> TerrainPrediction:
+        """Raw and filtered class, their probabilities, and the roughness level per frame.
+
+        Parameters
+        ----------
+        table : FeatureTable
+            Features of one traverse, computed as ``extraction_`` says.
+        mode : {"forward", "smooth", "viterbi"}, optional
+            Filter mode; default the model's ``mode``.
+
+        Returns
+        -------
+        TerrainPrediction
+
+        Raises
+        ------
+        ModelError
+            The table's spectrum has other wavenumbers than the model's (another patch).
+        """
+        self._check_fitted()
+        mode = self.mode if mode is None else mode
+        if mode not in MODES:
+            raise errors.InputError(f"mode must be forward, smooth or viterbi; got {mode!r}")
+        self._check_omega(table)
+        X, _ = feature_matrix(table)
+        valid = np.asarray(table.valid, dtype=bool) & np.isfinite(X).all(axis=1)
+        raw = np.full((len(X), len(self.classes_)), np.nan)
+        raw_class = np.full(len(X), "", dtype=object)
+        if valid.any():
+            cols = np.searchsorted(self.classes_, self.classifier_.classes_)
+            raw[valid] = 0.0
+            raw[np.ix_(valid, cols)] = self.classifier_.predict_proba(X[valid])
+            raw_class[valid] = self.classes_[np.argmax(raw[valid], axis=1)]
+        distance = np.asarray(table.distance(), dtype=float)
+        defect = self._defects(table, valid, distance, mode)
+        if self.filter_ is None:
+            filtered, filtered_class = raw.copy(), raw_class.copy()
+        else:
+            filtered, filtered_class = self._filter(raw, distance, valid & ~defect, mode)
+        level = roughness_level(
+            np.where(valid, table.columns["R"], np.nan), self.level_names_, self.level_thresholds_
+        )
+        return TerrainPrediction(
+            classes=self.classes_.astype(object),
+            valid=valid,
+            raw_proba=raw,
+            filtered_proba=filtered,
+            raw_class=raw_class,
+            filtered_class=filtered_class,
+            level=level,
+            distance=distance,
+            mode=mode,
+            defect=defect,
+        )
+
+    def _check_omega(self, table: Any) -> None:
+        """Raise ModelError unless the table's wavenumbers are the model's."""
+        omega = np.asarray(table.omega, dtype=float)
+        if omega.shape != self.omega_.shape or not np.allclose(omega, self.omega_, rtol=1e-6):
+            raise errors.ModelError(
+                f"traverse {table.name!r}: its spectrum has {omega.size} wavenumbers from "
+                f"{omega[0] if omega.size else float('nan'):.3g} rad/m, the model expects "
+                f"{self.omega_.size} from {self.omega_[0]:.3g} rad/m; compute the features "
+                f"with the model's patch {self.extraction_}"
+            )
+
+    def _filter(
+        self,
+        raw: NDArray[np.float64],
+        distance: NDArray[np.float64],
+        evidence: NDArray[np.bool_],
+        mode: str,
+    ) -> tuple[NDArray[np.float64], NDArray[np.object_]]:
+        """Filtered posteriors and class per frame; frames not in ``evidence`` get a predict
+        step only."""
+        if self.evidence_per_m_ is None:
+            raise errors.ModelError("this TerrainModel has a path filter but no evidence_per_m_")
+        flt = copy.copy(self.filter_)
+        flt.set_params(mode=mode)
+        ll = emission_log_likelihood(raw, frame_steps(distance), self.evidence_per_m_)
+        filtered = flt.predict_proba(ll, distance=distance, valid=evidence)
+        if mode == "viterbi":
+            filtered_class = flt.predict(ll, distance=distance, valid=evidence).astype(object)
+        else:
+            filtered_class = self.classes_[np.argmax(filtered, axis=1)].astype(object)
+        return filtered, filtered_class
+
+    def _defects(
+        self, table: Any, valid: NDArray[np.bool_], distance: NDArray[np.float64], mode: str
+    ) -> NDArray[np.bool_]:
+        """Frames of an isolated defect (recorded traverses only: the test looks ahead)."""
+        none = np.zeros(len(valid), dtype=bool)
+        if self.defects is None or mode == "forward" or not valid.any():
+            return none
+        if not np.all(np.isfinite(distance)):
+            log.warning("%s: poses not all finite; isolated defects not looked for", table.name)
+            return none
+        R = np.where(valid, np.asarray(table.columns["R"], dtype=float), np.nan)
+        defect = np.asarray(self.defects(R, distance), dtype=bool)
+        if defect.any():
+            log.info(
+                "%s: %d frame(s) see an isolated defect (%r); the filter does not take their class",
+                table.name,
+                int(defect.sum()),
+                self.defects,
+            )
+        return defect
+
+
+def _check_components(path_filter: Any, defects: Any) -> None:
+    """Raise InputError unless the components have the interface TerrainModel uses."""
+    if path_filter is not None:
+        methods = ("fit", "predict", "predict_proba", "set_params", "get_params")
+        missing = [m for m in methods if not callable(getattr(path_filter, m, None))]
+        params = path_filter.get_params() if not missing else {}
+        if missing or "mode" not in params:
+            raise errors.InputError(
+                "path_filter must be an estimator with fit, predict, predict_proba and a mode "
+                f"parameter (a rough_map.filter.PathFilter); got {path_filter!r}"
+            )
+        if params.get("inputs", "log_likelihood") != "log_likelihood":
+            raise errors.InputError(
+                "path_filter takes the log likelihoods of emission_log_likelihood: set "
+                f"inputs='log_likelihood'; got inputs={params['inputs']!r}"
+            )
+    if defects is not None and not callable(defects):
+        raise errors.InputError(
+            "defects must be None or a callable defects(R, distance) -> bool per frame (a "
+            f"rough_map.filter.IsolatedSpikes); got {defects!r}"
+        )
+
+
+def _training_summary(tables: Sequence[Any], frames: TrainingFrames) -> dict[str, Any]:
+    """Traverses, frame counts and :func:`training_hash` of the training data."""
+    return {
+        "sha256": training_hash(tables),
+        "traverses": [
+            {
+                "name": str(t.name),
+                "frames": int(len(t)),
+                "labelled": int((labels_of(t) != "").sum()),
+                "valid": int(np.sum(t.valid)),
+            }
+            for t in tables
+        ],
+        "class_frames": {str(c): int(np.sum(frames.y == c)) for c in np.unique(frames.y)},
+    }

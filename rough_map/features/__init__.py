@@ -1,0 +1,57 @@
+"""Features along a traverse: for every frame, the patch ahead and its PSD roughness.
+
+:func:`traverse_features` is the one place that turns a traverse into a
+:class:`FeatureTable` (one row per frame with the columns of :data:`COLUMNS`, plus the
+patch-mean log10 PSD ``psd_01`` ... that the classifier uses), given a
+:class:`rough_map.patch.Extraction`; :func:`feature_tables` computes or reads the tables of
+several traverses.
+
+* :mod:`rough_map.features.table`: :class:`FeatureTable`, its columns and units, and
+  :func:`label_summary` (R and w by label);
+* :mod:`rough_map.features.extract`: :func:`cloud_roughness` and :func:`frame_features`
+  (one cloud), :func:`traverse_features`, :func:`feature_tables`;
+* :mod:`rough_map.features.files`: :func:`write_features` / :func:`read_features` (plain
+  CSV with its JSON metadata beside it, or Parquet).
+"""
+
+from rough_map.features.extract import (
+    SOURCES,
+    cloud_roughness,
+    feature_tables,
+    frame_features,
+    traverse_features,
+)
+from rough_map.features.files import (
+    FEATURES_FORMAT,
+    FEATURES_FORMAT_VERSION,
+    features_metadata,
+    features_metadata_path,
+    read_features,
+    write_features,
+)
+from rough_map.features.table import (
+    COLUMN_UNITS,
+    COLUMNS,
+    FeatureTable,
+    LabelSummary,
+    label_summary,
+)
+
+__all__ = [
+    "COLUMNS",
+    "COLUMN_UNITS",
+    "FEATURES_FORMAT",
+    "FEATURES_FORMAT_VERSION",
+    "SOURCES",
+    "FeatureTable",
+    "LabelSummary",
+    "cloud_roughness",
+    "feature_tables",
+    "features_metadata",
+    "features_metadata_path",
+    "frame_features",
+    "label_summary",
+    "read_features",
+    "traverse_features",
+    "write_features",
+]

@@ -1,0 +1,222 @@
+"""The features table of a traverse: :class:`FeatureTable`, its columns and their units."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from rough_map.errors import InputError
+from rough_map.iso8608 import iso_class
+
+__all__ = ["COLUMNS", "COLUMN_UNITS", "FeatureTable", "LabelSummary", "label_summary"]
+
+#: Columns of a features table, in order (spectrum columns follow).
+COLUMNS = (
+    "frame",
+    "t",
+    "x",
+    "y",
+    "yaw",
+    "R",
+    "w",
+    "sigma_R",
+    "sigma_w",
+    "rms",
+    "iso_class",
+    "n_points",
+    "valid",
+    "reason",
+    "label",
+    "R_lat",
+    "w_lat",
+    "fit_residual",
+    "fill",
+    "point_noise",
+    "noise_psd",
+    "level_angle",
+)
+TEXT_COLUMNS = frozenset({"iso_class", "reason", "label"})
+BOOL_COLUMNS = frozenset({"valid"})
+INT_COLUMNS = frozenset({"frame", "n_points"})
+
+#: Units of the columns of a features table ("" for counts, flags, text and ratios).
+COLUMN_UNITS = {
+    "frame": "",
+    "t": "s",
+    "x": "m",
+    "y": "m",
+    "yaw": "rad",
+    "R": "m³/rad",
+    "w": "",
+    "sigma_R": "m³/rad",
+    "sigma_w": "",
+    "rms": "m",
+    "iso_class": "",
+    "n_points": "",
+    "valid": "",
+    "reason": "",
+    "label": "",
+    "R_lat": "m³/rad",
+    "w_lat": "",
+    "fit_residual": "",
+    "fill": "",
+    "point_noise": "m",
+    "noise_psd": "m³/rad",
+    "level_angle": "rad",
+}
+
+
+def _read_only(values: ArrayLike) -> np.ndarray:
+    """A read-only view of ``values`` (the caller's array stays writeable)."""
+    view = np.asarray(values).view()
+    view.flags.writeable = False
+    return view
+
+
+@dataclass(frozen=True, eq=False)
+class FeatureTable:
+    """Per-frame features of a traverse; read-only.
+
+    The table owns read-only views of the arrays it is given (the caller's arrays are not
+    changed): a changed table is a new one, :meth:`replace`.
+
+    Attributes
+    ----------
+    columns : mapping of str to ndarray
+        The :data:`COLUMNS` (R in m³/rad, rms in m, t in s, x/y in m, yaw in rad, ...).
+    omega : ndarray
+        Wavenumbers in rad/m of the spectrum columns.
+    log_psd : ndarray, shape (n_frames, len(omega))
+        log10 of the patch-mean PSD in m³/rad (NaN rows for invalid frames).
+    name : str
+        Name of the traverse.
+    """
+
+    columns: Mapping[str, np.ndarray]
+    omega: np.ndarray
+    log_psd: np.ndarray
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        cols = {str(k): _read_only(v) for k, v in self.columns.items()}
+        object.__setattr__(self, "columns", MappingProxyType(cols))
+        object.__setattr__(self, "omega", _read_only(self.omega))
+        object.__setattr__(self, "log_psd", _read_only(self.log_psd))
+
+    def __reduce__(self) -> tuple[Any, ...]:  # a mappingproxy does not pickle
+        return (type(self), (dict(self.columns), self.omega, self.log_psd, self.name))
+
+    def __len__(self) -> int:
+        return len(self.columns["t"])
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        return self.columns[key]
+
+    @property
+    def valid(self) -> np.ndarray:
+        """Frames with a valid patch (bool per frame)."""
+        return self.columns["valid"].astype(bool)
+
+    def distance(self) -> np.ndarray:
+        """Cumulative distance travelled along the path, m (from the poses)."""
+        x, y = self.columns["x"], self.columns["y"]
+        step = np.hypot(np.diff(x), np.diff(y))
+        return np.concatenate([[0.0], np.cumsum(step)])
+
+    def spectrum_names(self) -> list[str]:
+        """Names of the spectrum columns: ``psd_01`` ... one per wavenumber."""
+        return [f"psd_{k:02d}" for k in range(1, self.omega.size + 1)]
+
+    def replace(
+        self, *, log_psd: ArrayLike | None = None, name: str | None = None, **columns: ArrayLike
+    ) -> FeatureTable:
+        """A copy with some columns (``label=...``), the spectra or the name replaced.
+
+        Raises
+        ------
+        KeyError
+            A column the table does not have.
+        ValueError
+            A column or spectra of another number of frames.
+        """
+        unknown = sorted(set(columns) - set(self.columns))
+        if unknown:
+            raise KeyError(f"no such columns {unknown}; the columns are {list(self.columns)}")
+        new_cols = dict(self.columns)
+        for key, value in columns.items():
+            arr = np.array(value, dtype=self.columns[key].dtype)
+            if arr.shape != self.columns[key].shape:
+                raise ValueError(f"column {key!r} needs {len(self)} values, got {arr.shape}")
+            new_cols[key] = arr
+        spectra = self.log_psd if log_psd is None else np.array(log_psd, dtype=float)
+        if spectra.shape != self.log_psd.shape:
+            raise ValueError(f"log_psd must have shape {self.log_psd.shape}, got {spectra.shape}")
+        return FeatureTable(new_cols, self.omega, spectra, self.name if name is None else name)
+
+
+@dataclass(frozen=True)
+class LabelSummary:
+    """Roughness of the valid frames of one label.
+
+    Attributes
+    ----------
+    frames : int
+        Valid frames with the label.
+    R : float
+        Geometric mean of R, m³/rad.
+    w : float
+        Mean of w.
+    iso_class : str
+        ISO 8608 class of ``R``.
+    """
+
+    frames: int
+    R: float
+    w: float
+    iso_class: str
+
+    def to_dict(self) -> dict[str, Any]:
+        """``frames``, ``R``, ``w``, ``iso`` (the form of ``rough-map features --json``)."""
+        return {"frames": self.frames, "R": self.R, "w": self.w, "iso": self.iso_class}
+
+
+def label_summary(table: FeatureTable, labels: ArrayLike | None = None) -> dict[str, LabelSummary]:
+    """R and w by label over the valid frames: the per-label table of the CLI and reports.
+
+    Parameters
+    ----------
+    table : FeatureTable
+        The features.
+    labels : array_like of str, optional
+        One label per frame (e.g. predicted classes); default the table's ``label``
+        column.
+
+    Returns
+    -------
+    dict of str to LabelSummary
+        In order of first appearance; a label with no valid frame is left out; frames
+        without a label are under ``""``.
+    """
+    labs = np.asarray(table["label"] if labels is None else labels, dtype=object)
+    if labs.shape != (len(table),):
+        raise InputError(f"labels needs one label per frame ({len(table)}), got {labs.shape}")
+    valid = table.valid
+    out: dict[str, LabelSummary] = {}
+    for lab in dict.fromkeys(labs):
+        sel = valid & (labs == lab)
+        if not sel.any():
+            continue
+        r = math.exp(float(np.mean(np.log(table["R"][sel]))))
+        out[str(lab)] = LabelSummary(
+            frames=int(sel.sum()),
+            R=r,
+            w=float(np.mean(table["w"][sel])),
+            iso_class=str(iso_class(r)),
+        )
+    return out

@@ -1,0 +1,169 @@
+"""The power-law fit of a stack of spectra, with the corrections of ``method="unbiased"``.
+
+Every profile's log spectrum is fitted by a line in ``ln(Omega / omega0)``
+(:mod:`rough_map.psd._regression`). The unbiased method corrects it for
+
+* the log-periodogram bias ``E[ln P_hat] - ln P`` (``-gamma`` for one segment,
+  :func:`rough_map.psd._spectra.log_bias` for Welch), the same for every ordinate;
+* the leakage of the detrend and the window (and the box filter of cell means), which
+  depends on the waviness: it is interpolated in the tables of
+  :mod:`rough_map.psd._leakage` at the patch's waviness, iterated three times;
+
+and, with ``subtract_noise``, every fit takes the noise-floor correction of
+:mod:`rough_map.psd._noise`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from rough_map import iso8608
+from rough_map.psd._leakage import interp_rows, leakage, leakage_table
+from rough_map.psd._noise import check_floor, floor_correction
+from rough_map.psd._options import Options
+from rough_map.psd._regression import Projections, fit_plan, project, project_masked
+from rough_map.psd._result import PatchRoughness
+
+
+class Spectra(NamedTuple):
+    """Spectra of a stack of patches, the input of :func:`fit`.
+
+    Attributes
+    ----------
+    omega : ndarray, shape (bins,)
+        Wavenumbers in rad/m.
+    p : ndarray, shape (patches, profiles, bins)
+        One-sided PSD in m^3/rad.
+    bias : float
+        ``E[ln(P_hat / P)]`` of an ordinate.
+    rms : ndarray, shape (patches,)
+        Rms of the detrended profiles in m.
+    """
+
+    omega: np.ndarray
+    p: np.ndarray
+    bias: float
+    rms: np.ndarray
+
+
+def _leakage_offsets(
+    pr: Projections, sx: np.ndarray, waviness: float | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Projections on (xc, avg) of the leakage offset at each patch's waviness."""
+    n_patch = pr.yx.shape[0]
+    lx = np.zeros(n_patch)
+    la = np.zeros(n_patch)
+    for _ in range(1 if waviness is not None else 3):
+        # The window/detrend offset depends (weakly) on the waviness.
+        w_patch = (
+            np.full(n_patch, float(waviness))
+            if waviness is not None
+            else (pr.yx.mean(axis=1) + sx - lx) / pr.sxx
+        )
+        lx = interp_rows(w_patch, pr.leak_x)
+        la = interp_rows(w_patch, pr.leak_a)
+    return lx, la
+
+
+def fit(
+    spectra: Spectra, opt: Options, *, spacing: float, n: int, seg_n: int, n_dropped: int
+) -> list[PatchRoughness]:
+    """Vectorised log-log fit of ``spectra.p`` (patches, profiles, bins).
+
+    ``n`` is the profile length and ``seg_n`` the samples per spectral segment. The
+    per-bin corrections (bias, leakage, noise) are the same for every profile of a patch,
+    so the line fits are computed once on the raw log spectra (one matrix product) and the
+    corrections enter through their projections on the fit's two regressors.
+    """
+    p, bias = spectra.p, spectra.bias
+    n_bins = p.shape[2]
+    unbiased = opt.method == "unbiased"
+    plan = fit_plan(n_bins, seg_n, opt.method, spacing, opt.omega0, opt.window, opt.gridding)
+    logp = np.log(np.maximum(p, np.float32(1e-38)))
+    mean_psd = p.mean(axis=1, dtype=np.float64)
+    noise = math.nan if opt.noise_psd is None else float(opt.noise_psd)
+    shift: np.ndarray
+    if opt.subtract_noise:
+        noise = check_floor(opt.noise_psd)
+        shift, mask = floor_correction(mean_psd, noise, plan.mask)
+        table = leakage_table(seg_n, opt.window, opt.gridding)[:, :n_bins]
+        pr = project_masked(logp, plan.x, mask, table)
+    else:
+        shift = np.zeros((1, n_bins))
+        pr = project(logp, plan)
+    # Projections of the per-bin corrections on (centred x, mean).
+    sx = (shift * pr.xc).sum(axis=1)
+    sa = (shift * pr.avg).sum(axis=1)
+    if unbiased:
+        # E[ln P_hat] = ln P + bias: the bias projects to 0 on xc and to `bias` on the mean.
+        sa = sa - bias
+        lx, la = _leakage_offsets(pr, sx, opt.waviness)
+        sx = sx - lx
+        sa = sa - la
+    if opt.waviness is None:
+        wv = (pr.yx + sx[:, None]) / pr.sxx[:, None]
+    else:
+        wv = np.full_like(pr.yx, float(opt.waviness))
+    b = pr.ym + sa[:, None] - wv * pr.xm[:, None]
+    wm = wv.mean(axis=1)
+    bm = b.mean(axis=1)
+    adj = shift - bias if unbiased else shift
+    if unbiased:
+        adj = adj - leakage(seg_n, opt.window, wm, opt.gridding)[:, :n_bins]
+    # Residual of the patch-mean log spectrum about the patch line (shape of the spectrum).
+    mean_log = logp.mean(axis=1, dtype=np.float64) + adj
+    resid = np.where(pr.mask, mean_log - bm[:, None] - wm[:, None] * plan.x[None, :], 0.0)
+    fit_res = np.sqrt((resid * resid).sum(axis=1) / pr.mask.sum(axis=1))
+    return _results(spectra, opt, b, wv, mean_psd, pr.mask, fit_res, noise, spacing, n, n_dropped)
+
+
+def _results(
+    spectra: Spectra,
+    opt: Options,
+    b: np.ndarray,
+    wv: np.ndarray,
+    mean_psd: np.ndarray,
+    mask: np.ndarray,
+    fit_res: np.ndarray,
+    noise: float,
+    spacing: float,
+    n: int,
+    n_dropped: int,
+) -> list[PatchRoughness]:
+    """One :class:`PatchRoughness` per patch from the per-profile intercepts ``b`` and
+    slopes ``wv`` (patches, profiles)."""
+    n_patch, m = b.shape
+    wm = wv.mean(axis=1)
+    bm = b.mean(axis=1)
+    R = np.exp(bm)
+    sb = b.std(axis=1, ddof=1) if m > 1 else np.full(n_patch, np.nan)
+    sw = wv.std(axis=1, ddof=1) if m > 1 else np.full(n_patch, np.nan)
+    letters = iso8608.iso_class(R)
+    return [
+        PatchRoughness(
+            R=float(R[i]),
+            w=float(wm[i]),
+            sigma_R=float(R[i] * sb[i]),
+            sigma_w=float(sw[i]),
+            rms=float(spectra.rms[i]),
+            iso_class=str(letters[i]),
+            omega=spectra.omega,
+            psd=mean_psd[i],
+            profile_R=np.exp(b[i]),
+            profile_w=wv[i],
+            n_profiles=m,
+            n_dropped=n_dropped,
+            spacing=spacing,
+            length=n * spacing,
+            fit_mask=mask[i],
+            fit_residual=float(fit_res[i]),
+            noise_psd=noise,
+            noise_subtracted=bool(opt.subtract_noise),
+            method=opt.method,
+            omega0=opt.omega0,
+        )
+        for i in range(n_patch)
+    ]

@@ -1,0 +1,104 @@
+"""Input checks and the gap policy of the estimator (see :mod:`rough_map.psd`, *Gap policy*)."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from rough_map.errors import InputError
+
+
+def check_spacing(spacing: Any) -> float:
+    """The sample spacing as a positive float in m, or :class:`InputError`."""
+    try:
+        value = float(spacing)
+    except (TypeError, ValueError):
+        raise InputError(f"spacing must be a number in m, got {spacing!r}") from None
+    if not math.isfinite(value) or value <= 0:
+        raise InputError(f"spacing must be a positive length in m, got {value!r}")
+    return value
+
+
+def check_heights(heights: Any, min_samples: int = 8) -> np.ndarray:
+    """A height grid (profiles, samples) in m; a 1-D profile becomes one row.
+
+    Raises :class:`InputError` for non-numeric, empty, short or infinite input (NaN is
+    missing data and passes).
+    """
+    try:
+        h = np.asarray(heights, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError("heights must be a numeric array of elevations in m") from None
+    if h.ndim == 1:
+        h = h[None, :]
+    if h.ndim != 2:
+        raise InputError(
+            f"heights must be a 2-D grid (profiles x samples), got shape {np.shape(heights)}"
+        )
+    if h.size == 0:
+        raise InputError(f"heights is empty (shape {h.shape})")
+    if h.shape[1] < min_samples:
+        raise InputError(
+            f"profiles need at least {min_samples} samples, got {h.shape[1]} (shape {h.shape})"
+        )
+    if np.isinf(h).any():
+        raise InputError("heights contain infinite values; use NaN for missing cells")
+    return h
+
+
+def fill_gaps(
+    heights: np.ndarray,
+    spacing: float,
+    *,
+    max_gap: float = 0.05,
+    max_gap_fraction: float = 0.2,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Apply the gap policy to the rows of a height grid.
+
+    Parameters
+    ----------
+    heights : ndarray, shape (m, n)
+        Elevations in m, NaN for missing cells.
+    spacing : float
+        Sample spacing in m.
+    max_gap : float
+        Longest gap in m that is filled by interpolation.
+    max_gap_fraction : float
+        Largest fraction of missing cells a kept profile may have.
+
+    Returns
+    -------
+    filled : ndarray, shape (m, n)
+        Heights in m with short gaps filled; dropped rows are left as they were.
+    keep : ndarray of bool, shape (m,)
+        Profiles that pass the policy.
+    """
+    h = np.asarray(heights, dtype=float)
+    missing = np.isnan(h)
+    if not missing.any():
+        return h, np.ones(h.shape[0], dtype=bool)
+    m, n = h.shape
+    cols = np.arange(n)
+    valid = ~missing
+    # Index of the previous and next valid sample for every cell (vectorised over rows).
+    prev = np.maximum.accumulate(np.where(valid, cols, -1), axis=1)
+    nxt = np.minimum.accumulate(np.where(valid, cols, n)[:, ::-1], axis=1)[:, ::-1]
+    gap_len = np.where(missing, np.minimum(nxt, n) - np.maximum(prev, -1) - 1, 0)
+    # A gap touching an end counts its full length from that end.
+    max_cells = int(math.floor(max_gap / spacing + 1e-9))
+    keep = (gap_len.max(axis=1) <= max_cells) & (missing.mean(axis=1) <= max_gap_fraction)
+    keep &= valid.sum(axis=1) >= 2
+    p = np.clip(prev, 0, n - 1)
+    q = np.clip(nxt, 0, n - 1)
+    rows = np.arange(m)[:, None]
+    hp = h[rows, p]
+    hq = h[rows, q]
+    hp = np.where(prev < 0, hq, hp)
+    hq = np.where(nxt >= n, hp, hq)
+    span = np.where((nxt < n) & (prev >= 0), (nxt - prev).astype(float), 1.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        frac = np.where((nxt < n) & (prev >= 0), (cols - prev) / span, 0.0)
+    filled = np.where(missing & keep[:, None], hp + frac * (hq - hp), h)
+    return filled, keep

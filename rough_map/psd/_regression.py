@@ -1,0 +1,144 @@
+"""The log-log line fit as projections on its two regressors (centred ln Omega, mean).
+
+A line fit ``ln P_k = b + w x_k`` over the ordinates in the fit mask is linear in the log
+spectrum: ``w = sum(xc_k ln P_k) / sum(xc_k^2)`` and ``b = sum(avg_k ln P_k) - w xm``. The
+fits of all profiles are one matrix product with the two regressors, and any per-bin
+correction of the log spectrum (bias, leakage, noise floor) enters through its own
+projection on them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from rough_map.psd._leakage import leakage_table
+from rough_map.psd._spectra import frozen
+
+
+@dataclass(frozen=True)
+class FitPlan:
+    """Everything of the line fit that depends only on the geometry (cached, read-only).
+
+    Attributes
+    ----------
+    mask : ndarray of bool, shape (bins,)
+        Ordinates in the fit.
+    x : ndarray
+        ``ln(Omega / omega0)`` per ordinate.
+    xm, sxx : float
+        Mean of ``x`` over the mask and ``sum(xc^2)``.
+    xc, avg : ndarray
+        Centred ``x`` and the averaging weights (0 outside the mask).
+    proj : ndarray, shape (bins, 2), float32
+        ``[xc, avg]``, for one matrix product with float32 log spectra.
+    leak_x, leak_a : ndarray, shape (len(W_GRID),)
+        Projections of the leakage table on ``xc`` and ``avg``.
+    """
+
+    mask: np.ndarray
+    x: np.ndarray
+    xm: float
+    xc: np.ndarray
+    sxx: float
+    avg: np.ndarray
+    proj: np.ndarray
+    leak_x: np.ndarray
+    leak_a: np.ndarray
+
+
+@lru_cache(maxsize=64)
+def fit_plan(
+    n_bins: int, seg_n: int, method: str, spacing: float, omega0: float, window: str, gridding: str
+) -> FitPlan:
+    """The :class:`FitPlan` of ``n_bins`` ordinates of ``seg_n``-sample segments."""
+    omega = 2.0 * np.pi * np.arange(1, n_bins + 1) / (seg_n * spacing)
+    mask = np.ones(n_bins, dtype=bool)
+    if method == "unbiased":
+        mask[0] = False  # k = 1 is mostly removed by the detrending
+        if seg_n % 2 == 0 and n_bins == seg_n // 2:
+            mask[-1] = False  # Nyquist ordinate: one degree of freedom, half density
+    x = np.log(omega / omega0)
+    wts = mask.astype(float)
+    cnt = wts.sum()
+    xm = float(wts @ x) / cnt
+    xc = (x - xm) * wts
+    sxx = float(xc @ xc)
+    avg = wts / cnt
+    proj = np.stack([xc, avg], axis=1).astype(np.float32)
+    table = leakage_table(seg_n, window, gridding)[:, :n_bins]
+    leak_x, leak_a = table @ xc, table @ avg
+    frozen(mask, x, xc, avg, proj, leak_x, leak_a)
+    return FitPlan(mask, x, xm, xc, sxx, avg, proj, leak_x, leak_a)
+
+
+@dataclass(frozen=True)
+class Projections:
+    """The log spectra of a stack projected on the fit's regressors.
+
+    Attributes
+    ----------
+    mask : ndarray of bool, shape (patches, bins)
+        Ordinates in each patch's fit.
+    xm, sxx : ndarray, shape (patches,)
+        Per patch: mean of ``x`` over its mask, ``sum(xc^2)``.
+    xc, avg : ndarray, shape (patches or 1, bins)
+        Per patch: centred ``x`` and averaging weights.
+    yx, ym : ndarray, shape (patches, profiles)
+        Projections of each profile's log spectrum on ``xc`` and ``avg``.
+    leak_x, leak_a : ndarray, shape (patches, len(W_GRID))
+        Projections of the leakage table on ``xc`` and ``avg``.
+    """
+
+    mask: np.ndarray
+    xm: np.ndarray
+    sxx: np.ndarray
+    xc: np.ndarray
+    avg: np.ndarray
+    yx: np.ndarray
+    ym: np.ndarray
+    leak_x: np.ndarray
+    leak_a: np.ndarray
+
+
+def project(logp: np.ndarray, plan: FitPlan) -> Projections:
+    """Projections with the plan's mask for every patch (one float32 matrix product)."""
+    n_patch, m, n_bins = logp.shape
+    proj_all = (logp.reshape(-1, n_bins) @ plan.proj).astype(float)
+    return Projections(
+        mask=np.broadcast_to(plan.mask, (n_patch, n_bins)),
+        xm=np.full(n_patch, plan.xm),
+        sxx=np.full(n_patch, plan.sxx),
+        xc=plan.xc[None, :],
+        avg=plan.avg[None, :],
+        yx=proj_all[:, 0].reshape(n_patch, m),
+        ym=proj_all[:, 1].reshape(n_patch, m),
+        leak_x=np.broadcast_to(plan.leak_x, (n_patch, plan.leak_x.size)),
+        leak_a=np.broadcast_to(plan.leak_a, (n_patch, plan.leak_a.size)),
+    )
+
+
+def project_masked(
+    logp: np.ndarray, x: np.ndarray, mask: np.ndarray, table: np.ndarray
+) -> Projections:
+    """Projections with a mask per patch, shape (patches, bins); ``table`` is the leakage
+    table cut to the bins."""
+    wts = mask.astype(float)
+    cnt = wts.sum(axis=1)
+    xm = (wts @ x) / cnt
+    xc = (x[None, :] - xm[:, None]) * wts
+    sxx = (xc * xc).sum(axis=1)
+    avg = wts / cnt[:, None]
+    return Projections(
+        mask=mask,
+        xm=xm,
+        sxx=sxx,
+        xc=xc,
+        avg=avg,
+        yx=np.einsum("pmk,pk->pm", logp, xc.astype(np.float32)).astype(float),
+        ym=np.einsum("pmk,pk->pm", logp, avg.astype(np.float32)).astype(float),
+        leak_x=xc @ table.T,
+        leak_a=avg @ table.T,
+    )

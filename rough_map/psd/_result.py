@@ -1,0 +1,97 @@
+"""The estimator's result: :class:`PatchRoughness`."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True, eq=False)
+class PatchRoughness:
+    """Roughness parameters of one patch.
+
+    Attributes
+    ----------
+    R : float
+        Overall energy, Phi(omega0) in m^3/rad (``exp(E[ln R_i])``).
+    w : float
+        Waviness (dimensionless slope of the log-log fit, ``E[w_i]``).
+    sigma_R : float
+        First-order standard deviation of R in m^3/rad (paper Eq. 8).
+    sigma_w : float
+        Standard deviation of the profile waviness.
+    rms : float
+        Rms of the detrended profiles in m.
+    iso_class : str
+        ISO 8608 class letter of ``R``.
+    omega : ndarray
+        Wavenumbers ``Omega_k`` in rad/m, k = 1 ... n/2.
+    psd : ndarray
+        Patch-mean one-sided PSD in m^3/rad on ``omega`` (arithmetic mean over profiles).
+    profile_R, profile_w : ndarray
+        Per-profile fits (m^3/rad and dimensionless) of the profiles used.
+    n_profiles : int
+        Profiles used.
+    n_dropped : int
+        Profiles dropped by the gap policy.
+    spacing : float
+        Sample spacing B in m.
+    length : float
+        Profile length L = n B in m.
+    fit_mask : ndarray of bool
+        Which ordinates of ``omega`` entered the fit.
+    fit_residual : float
+        Rms residual of the per-profile log-log fits (natural-log units).
+    noise_psd : float
+        Noise floor in m^3/rad that was given (NaN if none).
+    noise_subtracted : bool
+        Whether the floor was subtracted before the fit.
+    method : str
+        ``"unbiased"`` or ``"paper"``.
+    omega0 : float
+        Reference wavenumber of R in rad/m.
+    """
+
+    R: float
+    w: float
+    sigma_R: float
+    sigma_w: float
+    rms: float
+    iso_class: str
+    omega: np.ndarray
+    psd: np.ndarray
+    profile_R: np.ndarray
+    profile_w: np.ndarray
+    n_profiles: int
+    n_dropped: int
+    spacing: float
+    length: float
+    fit_mask: np.ndarray
+    fit_residual: float
+    noise_psd: float
+    noise_subtracted: bool
+    method: str
+    omega0: float
+
+    @property
+    def sigma_lnR(self) -> float:
+        """Standard deviation of ln R_i (dimensionless)."""
+        return self.sigma_R / self.R if self.R > 0 else math.nan
+
+    def as_dict(self) -> dict[str, float | int | str]:
+        """Scalar fields, for tables and JSON."""
+        return {
+            "R": self.R,
+            "w": self.w,
+            "sigma_R": self.sigma_R,
+            "sigma_w": self.sigma_w,
+            "rms": self.rms,
+            "iso_class": self.iso_class,
+            "n_profiles": self.n_profiles,
+            "n_dropped": self.n_dropped,
+            "fit_residual": self.fit_residual,
+            "noise_psd": self.noise_psd,
+            "method": self.method,
+        }

@@ -1,0 +1,190 @@
+"""The paper's statistical moving-window filter: height outliers dropped window by window.
+
+:func:`statistical_outlier_filter` (and its mask, :func:`statistical_outlier_mask`) cut the
+ground plane into square windows and keep, in each, the points within ``k`` robust standard
+deviations of the window's median height. :func:`window_outlier_mask` is the same on
+coordinate columns with the windows aligned on a given corner, as the patch path of
+:func:`rough_map.stereo.stereo_to_cloud` runs it.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from rough_map.errors import InputError
+
+__all__ = [
+    "MAD_TO_SIGMA",
+    "statistical_outlier_filter",
+    "statistical_outlier_mask",
+    "window_outlier_mask",
+]
+
+log = logging.getLogger(__name__)
+
+#: Robust standard deviation per median absolute deviation (MAD) of Gaussian data, in its
+#: usual rounding: ``1 / Phi^-1(3/4)`` is 1.482602... (scipy's ``scale="normal"``), kept
+#: rounded so that the filter's and the ground fit's decisions stay what they were.
+MAD_TO_SIGMA = 1.4826
+
+
+def statistical_outlier_mask(
+    points: np.ndarray,
+    cell: float = 0.024,
+    k: float = 3.5,
+    min_tolerance: float = 0.003,
+    min_count: int = 3,
+) -> np.ndarray:
+    """Inliers of the statistical moving-window filter; see :func:`statistical_outlier_filter`.
+
+    Returns
+    -------
+    ndarray of bool, shape (N,)
+        True for the points kept.
+    """
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise InputError(f"points must have shape (N, 3), got {points.shape}")
+    if not cell > 0:
+        raise InputError(f"cell must be positive (m), got {cell}")
+    if points.shape[0] == 0:
+        return np.zeros(0, dtype=bool)
+    if points.dtype != np.float32:
+        points = points.astype(np.float64, copy=False)
+    x, y, z = (np.ascontiguousarray(c) for c in points.T)
+    return window_outlier_mask(
+        x, y, z, (float(x.min()), float(y.min())), cell, k, min_tolerance, min_count
+    )
+
+
+def window_outlier_mask(
+    x: np.ndarray,
+    y: np.ndarray,
+    z: np.ndarray,
+    origin: tuple[float, float],
+    cell: float,
+    k: float,
+    min_tolerance: float,
+    min_count: int,
+) -> np.ndarray:
+    """The filter on coordinate columns, windows ``cell`` m square from ``origin``.
+
+    Parameters
+    ----------
+    x, y, z : ndarray, shape (N,)
+        Coordinates in m, all float32 or all float64; ``z`` is the height the windows test
+        (e.g. above a ground plane).
+    origin : (float, float)
+        ``(x0, y0)`` in m, the corner of the first window (points below it count in the
+        first row or column of windows).
+    cell, k, min_tolerance, min_count
+        As :func:`statistical_outlier_filter` (m, robust sigmas, m, points).
+
+    Returns
+    -------
+    ndarray of bool, shape (N,)
+        True for the points kept.
+
+    Notes
+    -----
+    One sort orders the points by window, then by height: the window index plus the height
+    scaled into [0, 1); the medians are read at each window's middle. float64 keeps the
+    height to ~1e-11 of the cloud's z range. float32 columns are sorted in float32 (twice as
+    fast) when that still resolves heights to 1/32 of ``min_tolerance`` (2^24 steps share
+    window index and height).
+    """
+    n = z.shape[0]
+    ix = ((x - x.dtype.type(origin[0])) * x.dtype.type(1.0 / cell)).astype(np.int32)
+    iy = ((y - y.dtype.type(origin[1])) * y.dtype.type(1.0 / cell)).astype(np.int32)
+    np.maximum(ix, 0, out=ix)  # float rounding at the origin
+    np.maximum(iy, 0, out=iy)
+    nx = int(ix.max()) + 1
+    n_keys = nx * (int(iy.max()) + 1)
+    key = iy * nx + ix if n_keys < 2**31 else iy.astype(np.int64) * nx + ix
+    z0 = float(z.min())
+    span = float(z.max()) - z0
+    bits = max(1, n_keys - 1).bit_length()  # of the window index
+    dtype = (
+        np.float32
+        if z.dtype == np.float32
+        and min_tolerance > 0
+        and span * 2.0 ** (bits - 22) <= min_tolerance / 32
+        else np.float64
+    )
+    # Largest fraction that cannot round up into the next window index.
+    top = 1.0 - 2.0 ** (bits - (22 if dtype == np.float32 else 51))
+    scale = span / top or 1.0
+    zf: np.ndarray = z.astype(dtype, copy=False)
+    zs = (zf - dtype(z0)) * dtype(1.0 / scale)
+    np.minimum(zs, dtype(top), out=zs)
+    fkey = key.astype(dtype)
+    keyed = fkey + zs
+    g = np.sort(keyed)
+    key_sorted = g.astype(np.int64)
+    starts = np.flatnonzero(np.diff(key_sorted, prepend=-1))
+    counts = np.diff(starts, append=n)
+    cells = key_sorted[starts]
+    centre = dtype(0.5) * (g[starts + (counts - 1) // 2] + g[starts + counts // 2])  # + median
+    if n_keys <= 4 * n + 1024:
+        lookup = np.empty(n_keys, dtype=np.int32)
+        lookup[cells] = np.arange(len(cells), dtype=np.int32)
+        window = lookup[key]
+    else:  # sparse clouds over large areas: no dense table
+        window = np.searchsorted(cells, key)
+    deviation = np.abs(keyed - centre[window])  # < 1, in units of scale
+    np.minimum(deviation, dtype(top), out=deviation)
+    # Same trick for the MAD: the windows (hence starts and counts) are the same.
+    d = np.sort(fkey + deviation)
+    mad = dtype(0.5) * (d[starts + (counts - 1) // 2] + d[starts + counts // 2]) - cells
+    tolerance = np.maximum(dtype(k * MAD_TO_SIGMA) * mad, dtype(min_tolerance / scale))
+    tolerance[counts < min_count] = -1.0  # isolated windows: drop every point
+    keep = deviation <= tolerance[window]
+    log.debug("outlier filter: %d of %d points rejected", n - int(np.count_nonzero(keep)), n)
+    return keep
+
+
+def statistical_outlier_filter(
+    points: np.ndarray,
+    cell: float = 0.024,
+    k: float = 3.5,
+    min_tolerance: float = 0.003,
+    min_count: int = 3,
+) -> np.ndarray:
+    """The paper's statistical moving-window filter: drop height outliers, window by window.
+
+    The ground plane (x, y) is cut into square windows of side ``cell``. In each window the
+    median height ``m`` and the median absolute deviation ``MAD = median |z - m|`` are
+    computed, and a point is kept if ``|z - m| <= max(k * 1.4826 * MAD, min_tolerance)``
+    (``1.4826 * MAD`` estimates the standard deviation of Gaussian heights, and unlike the
+    standard deviation itself is not inflated by the outliers it is meant to find). Windows
+    holding fewer than ``min_count`` points are dropped as isolated. The windows are fixed
+    squares, not centred on each point. It is vectorised, two sorts of ``window index + scaled
+    height``, in float32 for float32 points when that resolves heights to 1/32 of
+    ``min_tolerance``: 15-20 ms of CPU for the 285 000 points of a stereo patch (float32) on
+    a busy 2-core machine, 25-35 ms in float64, where open3d's ``remove_statistical_outlier``
+    (a k-nearest-neighbour distance test) took 1.1-1.5 s in the same run. The patch path of
+    :func:`stereo_to_cloud` runs it on the heights above the fitted ground plane, in windows
+    aligned on the patch's corner.
+
+    Parameters
+    ----------
+    points : ndarray, shape (N, 3)
+        Points in m in a frame with z up (vehicle or world).
+    cell : float
+        Window side, m. Several grid cells of the patch (8 mm) wide, small enough that the
+        terrain's own relief inside a window is mostly below the noise.
+    k : float
+        Threshold in robust standard deviations.
+    min_tolerance : float
+        Smallest tolerated deviation, m.
+    min_count : int
+        Smallest number of points in a window.
+
+    Returns
+    -------
+    ndarray, shape (M, 3)
+        The points kept, in their original order.
+    """
+    return np.asarray(points)[statistical_outlier_mask(points, cell, k, min_tolerance, min_count)]
