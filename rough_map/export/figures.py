@@ -27,6 +27,7 @@ from rough_map import iso8608
 from rough_map._files import atomic_output
 from rough_map.export.layout import MapPanel, data_view, draw_map_panels
 from rough_map.export.profiles import LEVEL_COLOURS, class_colour
+from rough_map.patch import PatchSpec
 
 log = logging.getLogger(__name__)
 
@@ -248,12 +249,16 @@ def psd_lines_vs_iso(
     surfaces: dict[str, tuple[float, float]],
     path: str | Path,
     *,
-    band: tuple[float, float] = (2 * np.pi / 0.896, np.pi / 0.008),
+    patch: PatchSpec | None = None,
 ) -> Path:
     """Fitted PSD lines ``R Omega^w`` of surfaces against the ISO 8608 classes (Fig. 10).
 
-    ``surfaces`` maps a name to (R in m³/rad, w).
+    ``surfaces`` maps a name to (R in m³/rad, w). The lines span the waveband of ``patch``
+    (the patch the features came from; default ``PatchSpec()``): from ``2 pi / L`` to the
+    Nyquist ``pi / B`` rad/m.
     """
+    spec = PatchSpec() if patch is None else patch
+    band = (2 * np.pi / (spec.n * spec.spacing), np.pi / spec.spacing)
     fig = _figure(7, 5)
     ax = fig.add_subplot(1, 1, 1)
     om = np.geomspace(band[0], band[1], 50)

@@ -24,7 +24,7 @@ from rough_map.export.report_html import write_index
 from rough_map.export.report_inputs import AnalysisResult, ReportTable
 from rough_map.export.tables import plain
 from rough_map.features import FeatureTable, label_summary
-from rough_map.patch import grid_points
+from rough_map.patch import PatchSpec, grid_points
 from rough_map.psd import PatchRoughness, patch_roughness, profile_psd
 
 log = logging.getLogger(__name__)
@@ -67,7 +67,9 @@ def write_report(
     labels, which = _labels(result)
     figs["path"] = _path_figure(result, labels, which, out)
     figs.update(_frame_figures(result, out))
-    figs.update(_class_figures(result.features, labels, which, level_edges, out))
+    figs.update(
+        _class_figures(result.features, labels, which, level_edges, out, result.extraction.patch)
+    )
     figs.update(_map_figures(result, out))
     if evaluation is not None:
         figs["confusion"] = _confusion_figure(evaluation, out)
@@ -200,13 +202,15 @@ def _class_figures(
     which: str,
     level_edges: Sequence[float] | None,
     out: Path,
+    patch: PatchSpec,
 ) -> dict[str, tuple[Path, str]]:
-    """The classes' PSD lines against ISO 8608, and (R, w) by class."""
+    """The classes' PSD lines against ISO 8608 over the patch's waveband, and (R, w) by
+    class."""
     summary = label_summary(f, labels) if labels is not None else {}
     by_class = {name: (s.R, s.w) for name, s in summary.items() if name}
     if labels is None or not by_class:
         return {}
-    iso = fig.psd_lines_vs_iso(by_class, out / "fig_psd_iso.png")
+    iso = fig.psd_lines_vs_iso(by_class, out / "fig_psd_iso.png", patch=patch)
     classes = fig.class_scatter(
         f["R"], f["w"], labels, out / "fig_classes.png", level_edges=level_edges
     )
