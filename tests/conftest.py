@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -30,3 +32,29 @@ def _restore_cli_logging():
     saved = logger.handlers[:], logger.level, logger.propagate
     yield
     logger.handlers[:], logger.level, logger.propagate = saved
+
+
+# -- simulated traverses shared by the test modules (one build per test session and worker) --
+
+
+@pytest.fixture(scope="session")
+def small_traverse(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 3 m mixed course, clouds only (about 8 frames, 2 points per 8 mm cell). Read-only:
+    tests write their outputs elsewhere."""
+    from rough_map.simulate.course import SensorSpec, simulate
+
+    out = tmp_path_factory.mktemp("sim") / "small"
+    simulate(out, "mixed", length=3.0, seed=1, images=False, sensor=SensorSpec(points_per_cell=2))
+    return out
+
+
+@pytest.fixture(scope="session")
+def imaged_traverse(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``rough-map simulate --out D --course mixed --length 6 --image-every 3 --seed 1``: a
+    mixed course with a stereo pair every third frame. Read-only."""
+    from rough_map.cli.main import main
+
+    out = tmp_path_factory.mktemp("sim") / "imaged"
+    assert main(["-q", "simulate", "--out", str(out), "--course", "mixed", "--length", "6",
+                 "--image-every", "3", "--seed", "1"]) == 0  # fmt: skip
+    return out

@@ -27,7 +27,6 @@ from rough_map.features import (
     write_features,
 )
 from rough_map.io.traverse import load_traverse
-from rough_map.simulate.course import SensorSpec, simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 CALIBRATION = ROOT / "configs" / "stereo_calibration.yaml"
@@ -40,11 +39,9 @@ def run(capsys: pytest.CaptureFixture[str], *argv: object) -> tuple[int, str, st
 
 
 @pytest.fixture(scope="module")
-def small(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A 3 m mixed course, clouds only (about 8 frames, 2 points per 8 mm cell)."""
-    out = tmp_path_factory.mktemp("sim") / "small"
-    simulate(out, "mixed", length=3.0, seed=1, images=False, sensor=SensorSpec(points_per_cell=2))
-    return out
+def small(small_traverse: Path) -> Path:
+    """The shared 3 m mixed course, clouds only (conftest.small_traverse)."""
+    return small_traverse
 
 
 @pytest.fixture(scope="module")
@@ -53,12 +50,9 @@ def small_features(small: Path):
 
 
 @pytest.fixture(scope="module")
-def imaged(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """``rough-map simulate --out D --course mixed --length 6 --image-every 3 --seed 1``."""
-    out = tmp_path_factory.mktemp("sim") / "imaged"
-    assert main(["-q", "simulate", "--out", str(out), "--course", "mixed", "--length", "6",
-                 "--image-every", "3", "--seed", "1"]) == 0  # fmt: skip
-    return out
+def imaged(imaged_traverse: Path) -> Path:
+    """The shared 6 m mixed course with images (conftest.imaged_traverse)."""
+    return imaged_traverse
 
 
 def _subparsers() -> dict[str, argparse.ArgumentParser]:

@@ -512,15 +512,6 @@ def test_cli_import(
 # The example bag: a simulated traverse recorded as a rover's logger would
 
 
-@pytest.fixture(scope="module")
-def small_traverse(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from rough_map.simulate.course import SensorSpec, simulate
-
-    out = tmp_path_factory.mktemp("sim") / "small"
-    simulate(out, "mixed", length=3.0, seed=1, images=False, sensor=SensorSpec(points_per_cell=2))
-    return out
-
-
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3", "ros1"])
 def test_example_bag_round_trip(small_traverse: Path, tmp_path: Path, storage: str) -> None:
     """write_example_bag -> import_bag gives the traverse back: poses, IMU, clouds."""
