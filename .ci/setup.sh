@@ -29,17 +29,22 @@ can_root() {
 as_root() { if [ "$(id -u)" = "0" ]; then "$@"; else sudo "$@"; fi; }
 
 # Install all the missing Debian packages in one apt run, or print the one command to run.
+apt_line() {
+  say "rough_map needs the Debian package(s) $*; installing them needs root."
+  say "Run this, then the set-up again:"
+  echo "    sudo apt-get update && sudo apt-get install -y $*" >&2
+  exit 1
+}
 apt_install() {
   [ "$#" -gt 0 ] || return 0
-  if ! can_root; then
-    say "rough_map needs the Debian package(s) $*; installing them needs root."
-    say "Run this, then the set-up again:"
-    echo "    sudo apt-get update && sudo apt-get install -y $*" >&2
-    exit 1
-  fi
+  can_root || apt_line "$@"
   say "installing the Debian package(s) $* through apt"
-  as_root apt-get update -qq
-  as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "$@" >/dev/null
+  # sudo may still refuse (a user at a terminal who is not a sudoer): then say what to run.
+  if ! as_root apt-get update -qq \
+    || ! as_root env DEBIAN_FRONTEND=noninteractive DEBCONF_NOWARNINGS=yes \
+      apt-get install -y -qq "$@" >/dev/null; then
+    apt_line "$@"
+  fi
 }
 
 need=()
