@@ -1,25 +1,25 @@
-"""Stereo -> cloud throughput: the patch path against the full-frame path, same run.
+"""Stereo -> features per frame, one thread, against baselines timed in the same run.
 
-Run ``python benchmarks/bench_stereo.py [--reps 20]``. It renders one 1280x960 pair of rough
-compact soil with the XB3-like rig (and times the renderer), then times, per frame,
+Run ``python benchmarks/bench_stereo.py [--traverse DIR] [--reps 5]``. Everything runs on one
+thread (``cv2.setNumThreads(1)``, BLAS pinned to 1 thread with threadpoolctl), as in each
+worker process of ``traverse_features``: the frame rate on ``n`` cores is about ``n`` times
+``1000 / (CPU ms per frame)``. Times are CPU times (``time.process_time``), which barely grow
+when other processes compete for the cores, unlike the wall times.
 
-* full frame: SGM over the whole image (0-255 px disparities), points, outlier filter,
-  vehicle frame (``stereo_to_cloud(..., restrict_to_patch=False)``), the baseline;
-* patch path (the default, ``stereo_to_cloud(...)``): a coarse pass on the pair binned 4x4
-  finds the ground plane under the patch and its relief, then SGM at full resolution on the
-  rows and columns that see the patch, on the residual to that plane's disparity over the
-  relief only, points of every second column, outlier filter; with its breakdown;
-* "patch, one pass": the patch path as it was before the coarse pass (one SGM pass over
-  +-0.15 m around the vehicle's ``z = 0``, every column, 8 px margins);
-* "patch fast": the default with ``row_step=2`` and ``blockSize=3`` (vertical binning; see
-  ``configs/stereo.yaml`` for what it costs in PSD fidelity).
+The frames are those of a simulated traverse with images (``--traverse``, e.g. made by
+``rough-map simulate --out DIR --course mixed --length 6 --seed 3``), or else one pair of
+rough compact soil rendered here and written as colour PNG files as the simulator writes
+them. Per frame it times
 
-Times are the median and the best of the repetitions, wall clock, and the median CPU time
-per frame (``time.process_time``: user + system time of all the process's threads, which
-barely grows when other processes compete for the cores, unlike the wall time). OpenCV runs
-with its default thread count (``cv2.getNumThreads()``, all cores); SGBM_3WAY, the only SGBM
-mode it parallelises, is about 2/3 of the patch path's CPU time, the rest is one thread. The
-load average is printed because other processes on the machine slow the wall times down.
+* the pipeline, as ``traverse_features`` runs it on a frame: decode the pair
+  (:func:`rough_map.stereo.read_image`), ``stereo_to_cloud`` (the patch path), and
+  ``frame_features`` (gridding, PSD fit), with its breakdown by stage;
+* baseline "decode": decoding the pair alone, the floor of any pipeline reading PNG files;
+* baseline "plain SGBM": decoding the pair and OpenCV's ``StereoSGBM`` on the full image with
+  the config's 256 disparities, nothing else;
+
+and prints the pipeline's time as a ratio of each baseline. It then times the paths of
+``stereo_to_cloud`` on the first pair (full frame, patch path in one pass, fast mode).
 """
 
 from __future__ import annotations
@@ -27,12 +27,18 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
+import tempfile
 import time
+from collections.abc import Callable
+from pathlib import Path
 
 import cv2
 import numpy as np
+from threadpoolctl import threadpool_limits
 
-from rough_map.patch import PatchSpec
+from rough_map.features import frame_features
+from rough_map.io.traverse import load_traverse
+from rough_map.patch import Extraction, PatchSpec
 from rough_map.simulate.render import render_stereo
 from rough_map.stereo import (
     SGBMConfig,
@@ -40,12 +46,17 @@ from rough_map.stereo import (
     StereoConfig,
     fit_ground,
     patch_window,
+    read_image,
     stereo_to_cloud,
 )
 from rough_map.stereo.matching import sgbm_raw
 from rough_map.stereo.outliers import window_outlier_mask
+from rough_map.stereo.settings import SGBM_MODES
 from rough_map.stereo.triangulation import window_cloud
 from rough_map.types import HeightField
+
+#: (left PNG, right PNG, roll, pitch): one frame's files and IMU tilt (rad, or None).
+Frame = tuple[Path, Path, float | None, float | None]
 
 
 def rough_world(spacing: float = 0.004, rms: float = 0.005, seed: int = 0) -> HeightField:
@@ -65,147 +76,206 @@ def rough_world(spacing: float = 0.004, rms: float = 0.005, seed: int = 0) -> He
     )
 
 
-def timed(fn, reps: int) -> tuple[float, float, float]:
-    """Median and best wall time and median CPU time (all threads) of ``fn()`` in s."""
+def cpu_ms(fn: Callable[[], object], reps: int) -> float:
+    """Median CPU time of ``fn()`` over ``reps`` calls after one warm-up, ms."""
     fn()
-    walls, cpus = [], []
+    times = []
     for _ in range(reps):
-        c = time.process_time()
-        t = time.perf_counter()
+        t = time.process_time()
         fn()
-        walls.append(time.perf_counter() - t)
-        cpus.append(time.process_time() - c)
-    return statistics.median(walls), min(walls), statistics.median(cpus)
+        times.append(time.process_time() - t)
+    return 1e3 * statistics.median(times)
+
+
+def rendered_frames(folder: Path, calib: StereoCalibration) -> list[Frame]:
+    """One colour pair of rough compact soil, written as PNG files into ``folder``."""
+    left, right, _ = render_stereo(rough_world(), (0, 0, 0, 0, 0, 0), calib, color=True)
+    paths = folder / "left.png", folder / "right.png"
+    for path, image in zip(paths, (left, right), strict=True):
+        cv2.imwrite(str(path), image)
+    return [(paths[0], paths[1], None, None)]
+
+
+def traverse_frames(folder: str) -> tuple[list[Frame], StereoCalibration, str]:
+    """The frames with a stereo pair of a traverse, its calibration and name."""
+    trav = load_traverse(folder)
+    if trav.spec.calibration is None:
+        raise SystemExit(f"{folder}: the traverse has no calibration")
+    frames = [
+        (
+            trav.resolve(f.left),
+            trav.resolve(f.right),
+            None if f.imu is None else f.imu.roll,
+            None if f.imu is None else f.imu.pitch,
+        )
+        for f in trav.frames
+        if f.left is not None and f.right is not None
+    ]
+    if not frames:
+        raise SystemExit(f"{folder}: no frame has a stereo pair")
+    return frames, trav.spec.calibration, trav.name
+
+
+def stage_times(
+    frame: Frame, calib: StereoCalibration, config: StereoConfig, ex: Extraction
+) -> dict[str, float]:
+    """CPU ms of each stage of one frame, run as ``stereo_to_cloud`` runs them."""
+    patch = ex.patch
+    left_path, right_path, roll, pitch = frame
+    f = config.outlier_filter
+    assert f is not None
+    half = patch.size / 2 + config.crop_margin
+    out: dict[str, float] = {}
+    t = time.process_time()
+
+    def lap(name: str) -> None:
+        nonlocal t
+        now = time.process_time()
+        out[name] = 1e3 * (now - t)
+        t = now
+
+    left, right = read_image(left_path), read_image(right_path)
+    lap("decode pair")
+    window = patch_window(
+        calib,
+        patch,
+        height_tolerance=config.height_tolerance,
+        crop_margin=config.crop_margin,
+        margin_px=config.margin_px,
+        clip=True,
+    )
+    fit = fit_ground(left, right, calib, config, patch=patch)
+    if fit is not None:
+        window = patch_window(
+            calib,
+            patch,
+            height_tolerance=fit[1],
+            crop_margin=config.crop_margin,
+            margin_px=config.margin_px,
+            plane=fit[0],
+            clip=True,
+        )
+    lap("coarse pass")
+    raw = sgbm_raw(
+        left, right, config.sgbm, window.rows, window.cols, window.residual, 1, window.prior
+    )
+    lap("fine SGM")
+    x, y, z, dz = window_cloud(
+        raw, calib, window, patch, margin=config.crop_margin, col_step=config.col_step
+    )
+    lap("points")
+    corner = (patch.ahead - half, patch.lateral - half)
+    keep = window_outlier_mask(x, y, dz, corner, f.cell, f.k, f.min_tolerance, f.min_count)
+    points = np.column_stack([x[keep], y[keep], z[keep]]).astype(np.float64)
+    lap("outlier filter")
+    frame_features(points, ex, roll=roll, pitch=pitch)
+    lap("features")
+    return out
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--reps", type=int, default=20, help="repetitions per path")
+    parser.add_argument("--traverse", help="a simulated traverse with images (default: render)")
+    parser.add_argument("--reps", type=int, default=5, help="repetitions per timing")
+    parser.add_argument("--frames", type=int, default=8, help="most frames of the traverse")
     args = parser.parse_args()
+    cv2.setNumThreads(1)
+    threadpool_limits(limits=1)
 
-    calib = StereoCalibration.xb3_default()
-    patch = PatchSpec()
     config = StereoConfig()
-    one_pass = config.model_copy(
-        update={"fit_ground": False, "height_tolerance": 0.15, "col_step": 1, "margin_px": 8}
-    )
-    binned = config.model_copy(
-        update={"row_step": 2, "sgbm": SGBMConfig(blockSize=3, P1=72, P2=288)}
-    )
-    world = rough_world()
-    print(
-        f"OpenCV {cv2.__version__}, {cv2.getNumThreads()} threads, {os.cpu_count()} CPUs, "
-        f"load average {os.getloadavg()[0]:.1f} (other processes slow the wall times)"
-    )
-
-    rows = patch_window(calib, patch).rows
-    left, right, _ = render_stereo(world, (0, 0, 0, 0, 0, 0), calib)  # warm-up (imports)
-    t_full, t_full_best, _ = timed(lambda: render_stereo(world, (0, 0, 0, 0, 0, 0), calib), 3)
-    t_rows, t_rows_best, _ = timed(
-        lambda: render_stereo(world, (0, 0, 0, 0, 0, 0), calib, rows=rows), 3
-    )
-    print(
-        f"render 1280x960 gray pair (median / best of 3): full frame {t_full:.2f} / "
-        f"{t_full_best:.2f} s, patch rows {rows} {t_rows:.2f} / {t_rows_best:.2f} s"
-    )
-
-    paths = {
-        "full frame": lambda: stereo_to_cloud(left, right, calib, config, restrict_to_patch=False),
-        "patch, one pass": lambda: stereo_to_cloud(left, right, calib, one_pass),
-        "patch": lambda: stereo_to_cloud(left, right, calib, config),
-        "patch fast": lambda: stereo_to_cloud(left, right, calib, binned),
-    }
-    results = {name: (timed(fn, args.reps), len(fn())) for name, fn in paths.items()}
-
-    print(
-        f"\n{'path':<17}{'median ms':>10}{'best ms':>9}{'frames/s':>10}{'cpu ms':>8}{'points':>9}"
-    )
-    for name, ((med, best, cpu), n) in results.items():
+    with tempfile.TemporaryDirectory() as tmp:
+        if args.traverse:
+            frames, calib, name = traverse_frames(args.traverse)
+            step = max(1, len(frames) // args.frames)
+            frames = frames[::step][: args.frames]
+        else:
+            calib = StereoCalibration.xb3_default()
+            frames, name = rendered_frames(Path(tmp), calib), "rendered rough compact soil"
+        ex = Extraction(patch=PatchSpec())
         print(
-            f"{name:<17}{med * 1e3:>10.1f}{best * 1e3:>9.1f}{1 / med:>10.1f}{cpu * 1e3:>8.0f}{n:>9}"
+            f"OpenCV {cv2.__version__}, 1 thread (BLAS pinned), {os.cpu_count()} CPUs, load "
+            f"average {os.getloadavg()[0]:.1f}; {len(frames)} frame(s) of {name}, "
+            f"median CPU ms of {args.reps} repetitions"
         )
-    t_frame, t_patch = results["full frame"][0], results["patch"][0]
-    print(
-        f"patch / full-frame speed-up: {t_frame[0] / t_patch[0]:.1f}x (median wall), "
-        f"{t_frame[2] / t_patch[2]:.1f}x (CPU); target >= 10 frames/s for the patch path, i.e. "
-        f"<= ~120 ms of CPU per frame on 2 idle cores: {t_patch[2] * 1e3:.0f} ms here"
-    )
-
-    # Breakdown of the patch path (the calls stereo_to_cloud makes).
-    fit = fit_ground(left, right, calib, config, patch=patch)
-    assert fit is not None
-    window = patch_window(
-        calib,
-        patch,
-        height_tolerance=fit[1],
-        plane=fit[0],
-        clip=True,
-        crop_margin=config.crop_margin,
-        margin_px=config.margin_px,
-    )
-    coarse = timed(lambda: fit_ground(left, right, calib, config, patch=patch), args.reps)
-
-    def fine_sgm():
-        return sgbm_raw(
-            left, right, config.sgbm, window.rows, window.cols, window.residual, 1, window.prior
+        plain = cv2.StereoSGBM.create(
+            minDisparity=config.sgbm.minDisparity,
+            numDisparities=config.sgbm.numDisparities,
+            blockSize=config.sgbm.blockSize,
+            P1=config.sgbm.P1,
+            P2=config.sgbm.P2,
+            disp12MaxDiff=config.sgbm.disp12MaxDiff,
+            preFilterCap=config.sgbm.preFilterCap,
+            uniquenessRatio=config.sgbm.uniquenessRatio,
+            speckleWindowSize=config.sgbm.speckleWindowSize,
+            speckleRange=config.sgbm.speckleRange,
+            mode=SGBM_MODES[config.sgbm.mode],
         )
+        rows: dict[str, list[float]] = {"pipeline": [], "decode": [], "plain SGBM": []}
+        stages: dict[str, list[float]] = {}
+        for frame in frames:
 
-    sgm = timed(fine_sgm, args.reps)
-    raw = fine_sgm()
-    half = patch.size / 2 + config.crop_margin
+            def pipeline(frame: Frame = frame) -> object:
+                left, right = read_image(frame[0]), read_image(frame[1])
+                points = stereo_to_cloud(left, right, calib, config, patch=ex.patch)
+                return frame_features(points, ex, roll=frame[2], pitch=frame[3])
 
-    def points():
-        return window_cloud(
-            raw, calib, window, patch, margin=config.crop_margin, col_step=config.col_step
-        )
+            def decode(frame: Frame = frame) -> object:
+                return read_image(frame[0]), read_image(frame[1])
 
-    pts = timed(points, args.reps)
-    x, y, z, dz = points()
-    f = config.outlier_filter
-    filt = timed(
-        lambda: window_outlier_mask(
-            x,
-            y,
-            dz,
-            (patch.ahead - half, patch.lateral - half),
-            f.cell,
-            f.k,
-            f.min_tolerance,
-            f.min_count,
-        ),
-        args.reps,
-    )
-    print(
-        f"\npatch path breakdown, median CPU / wall ms: coarse pass (ground plane "
-        f"z = {fit[0][0]:.4f} x + {fit[0][1]:.4f} y + {fit[0][2]:.4f} m, relief "
-        f"{fit[1][0]:+.3f}..{fit[1][1]:+.3f} m) {coarse[2] * 1e3:.1f} / {coarse[0] * 1e3:.1f}; "
-        f"fine SGM ({window.rows[1] - window.rows[0]} rows x "
-        f"{window.cols[1] - window.cols[0]} columns, {window.residual[1]} residual "
-        f"disparities) {sgm[2] * 1e3:.1f} / {sgm[0] * 1e3:.1f}; points (every "
-        f"{config.col_step} columns) {pts[2] * 1e3:.1f} / {pts[0] * 1e3:.1f}; outlier filter "
-        f"({len(z)} points) {filt[2] * 1e3:.1f} / {filt[0] * 1e3:.1f}"
-    )
-    one = one_pass
-    win1 = patch_window(calib, patch, height_tolerance=one.height_tolerance)
-    print(
-        f"one-pass patch path searched {win1.rows[1] - win1.rows[0]} rows x "
-        f"{win1.cols[1] - win1.cols[0]} columns, {win1.residual[1]} residual disparities"
-    )
+            def plain_sgbm(frame: Frame = frame) -> object:
+                return plain.compute(read_image(frame[0]), read_image(frame[1]))
 
-    # The filter against open3d's statistical outlier removal on the same cloud (baseline).
-    try:
-        import open3d as o3d
-    except ImportError:
-        o3d = None
-    if o3d is not None:
-        unfiltered = one.model_copy(update={"outlier_filter": None})
-        cloud = stereo_to_cloud(left, right, calib, unfiltered, patch=patch)
-        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud))
-        o3d_time = timed(lambda: pcd.remove_statistical_outlier(nb_neighbors=20, std_ratio=2.0), 1)
+            rows["pipeline"].append(cpu_ms(pipeline, args.reps))
+            rows["decode"].append(cpu_ms(decode, args.reps))
+            rows["plain SGBM"].append(cpu_ms(plain_sgbm, max(1, args.reps // 2)))
+            runs = [stage_times(frame, calib, config, ex) for _ in range(args.reps)]
+            for stage in runs[0]:
+                stages.setdefault(stage, []).append(statistics.median(r[stage] for r in runs))
+
+        pipe = statistics.mean(rows["pipeline"])
+        header = f"{'per frame, one thread':<44}{'CPU ms':>8}{'frames/s':>10}"
+        print(f"\n{header}{'pipeline / this':>16}")
+        labels = {
+            "pipeline": "decode + stereo_to_cloud + frame_features",
+            "decode": "baseline: decode the pair (PNG)",
+            "plain SGBM": "baseline: decode + plain SGBM, full image",
+        }
+        for key, values in rows.items():
+            ms = statistics.mean(values)
+            ratio = pipe / ms
+            print(f"{labels[key]:<44}{ms:>8.1f}{1e3 / ms:>10.1f}{ratio:>16.2f}")
         print(
-            f"open3d remove_statistical_outlier on the one-pass cloud ({len(cloud)} points): "
-            f"{o3d_time[0] * 1e3:.0f} ms"
+            f"pipeline / decode {pipe / statistics.mean(rows['decode']):.2f}, pipeline / plain "
+            f"SGBM {pipe / statistics.mean(rows['plain SGBM']):.2f}; on 2 worker processes "
+            f"about {2e3 / pipe:.0f} frames/s (target >= 16, per frame <= ~100 ms)"
         )
+        print("\nbreakdown (mean over frames of the median per frame), CPU ms:")
+        total = sum(statistics.mean(v) for v in stages.values())
+        for stage, values in stages.items():
+            ms = statistics.mean(values)
+            print(f"  {stage:<16}{ms:>7.1f}  {100 * ms / total:>4.0f} %")
+        print(f"  {'sum':<16}{total:>7.1f}")
+
+        # The paths of stereo_to_cloud on the first pair, decoded once.
+        left, right = read_image(frames[0][0]), read_image(frames[0][1])
+        one_pass = config.model_copy(
+            update={"fit_ground": False, "height_tolerance": 0.15, "col_step": 1, "margin_px": 8}
+        )
+        fast = config.model_copy(
+            update={"row_step": 2, "sgbm": SGBMConfig(blockSize=3, P1=72, P2=288)}
+        )
+        paths: dict[str, Callable[[], np.ndarray]] = {
+            "patch (default)": lambda: stereo_to_cloud(left, right, calib, config),
+            "patch, one pass": lambda: stereo_to_cloud(left, right, calib, one_pass),
+            "patch fast": lambda: stereo_to_cloud(left, right, calib, fast),
+            "full frame": lambda: stereo_to_cloud(
+                left, right, calib, config, restrict_to_patch=False
+            ),
+        }
+        print(f"\n{'stereo_to_cloud, first pair':<28}{'CPU ms':>8}{'points':>9}")
+        for label, fn in paths.items():
+            reps = 1 if label == "full frame" else args.reps
+            print(f"{label:<28}{cpu_ms(fn, reps):>8.1f}{len(fn()):>9}")
     print(f"load average at the end: {os.getloadavg()[0]:.1f}")
 
 

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+import warnings
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -24,25 +25,28 @@ from rough_map.classify import (
     TerrainPrediction,
     load_roughness_levels,
     load_terrain_model,
-    roughness_level,
 )
-from rough_map.errors import InputError
+from rough_map.errors import EmptyMapWarning, InputError
 from rough_map.evaluation.near_far import far_field_accuracy
 from rough_map.evaluation.truth import truth_accuracy
+from rough_map.export import export_map
 from rough_map.export.labels import write_labels
+from rough_map.export.png import write_pngs
 from rough_map.features import (
     FeatureTable,
     features_metadata_path,
-    traverse_features,
+    frame_jobs,
+    iter_frames,
     write_features,
 )
+from rough_map.features.frames import traverse_pass
 from rough_map.io.traverse import Traverse, load_traverse
-from rough_map.io.truth import traverse_truth
-from rough_map.map import GridMap, fuse_cell_probabilities, fuse_traverse
+from rough_map.io.truth import World, traverse_truth
+from rough_map.map import GridMap, fuse_cell_probabilities
 from rough_map.map import near_far as n2f
-from rough_map.map.elevation import add_elevation
+from rough_map.map.tiles import is_accumulator
+from rough_map.online import OnlineMapper
 from rough_map.patch import Extraction
-from rough_map.types import HeightField
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +55,8 @@ __all__ = [
     "analyse",
     "coverage_report",
     "level_edges",
+    "summary",
+    "write_outputs",
     "write_tables",
 ]
 
@@ -78,6 +84,8 @@ class TraverseAnalysis:
         Near-to-far predictions per frame (empty when not run).
     far_report : dict
         Area covered (m²) and far-field accuracy (when the world truth is known).
+    mapper : OnlineMapper or None
+        The mapper that fused the map, holding its sums (``map_state.npz``).
     """
 
     traverse: Traverse
@@ -88,12 +96,14 @@ class TraverseAnalysis:
     extraction: Extraction = field(default_factory=Extraction)
     far: list[n2f.FarPrediction] = field(default_factory=list)
     far_report: dict[str, Any] = field(default_factory=dict)
-    _truth: HeightField | None = field(default=None, init=False, repr=False)
+    mapper: OnlineMapper | None = field(default=None, repr=False)
+    _truth: World | None = field(default=None, init=False, repr=False)
     _truth_read: bool = field(default=False, init=False, repr=False)
 
-    def truth(self) -> HeightField | None:
-        """The simulator's world (:class:`~rough_map.types.HeightField` with its class map),
-        read once from the traverse's ``height_field``; None when it has none."""
+    def truth(self) -> World | None:
+        """The simulator's world (:class:`~rough_map.types.HeightField` with its class map,
+        or for a long world a :class:`~rough_map.io.truth.TiledWorld` read a tile at a
+        time), read once from the traverse's ``height_field``; None when it has none."""
         if not self._truth_read:
             self._truth, self._truth_read = traverse_truth(self.traverse), True
         return self._truth
@@ -113,9 +123,16 @@ def analyse(
     resolution: float = 0.1,
     near_far: str | bool = "auto",
     far_weight: float = 0.3,
+    n_jobs: int = 1,
     progress: bool = False,
 ) -> TraverseAnalysis:
     """Run the chain on a traverse.
+
+    One pass over the frames (each cloud read once, on ``n_jobs`` processes) gives the
+    features and the heights; an :class:`~rough_map.online.OnlineMapper` fuses them into a
+    tiled map kept in bounded memory; the model classifies the frames and filters the
+    classes over the whole path, and their posteriors are fused in a second pass over the
+    poses (no cloud is read again).
 
     Parameters
     ----------
@@ -126,7 +143,8 @@ def analyse(
         :func:`rough_map.classify.load_terrain_model`); without one the map has
         roughness layers only.
     features : FeatureTable, optional
-        Precomputed features (else computed with the model's extraction settings).
+        Precomputed features (else computed with the model's extraction settings); the
+        clouds are still read once, for the elevation.
     resolution : float
         Map cell size in m.
     near_far : {"auto", True, False}
@@ -134,6 +152,8 @@ def analyse(
         images and there is a model).
     far_weight : float
         Weight of a far-field prediction relative to a near-field observation.
+    n_jobs : int
+        Worker processes for the frames (-1: every core); the result is the same for any.
     progress : bool
         Progress bars on stderr.
     """
@@ -145,21 +165,24 @@ def analyse(
     extraction = Extraction.from_dict(
         terrain_model.extraction_ if terrain_model is not None else None
     )
-    if features is None:
-        features = traverse_features(traverse, extraction, progress=progress)
-    prediction = terrain_model.predict(features) if terrain_model is not None else None
-    grid = fuse_traverse(
-        features,
-        prediction.filtered_proba if prediction is not None else None,
-        tuple(str(c) for c in prediction.classes) if prediction is not None else (),
-        levels=_levels(features, terrain_model),
+    mapper = OnlineMapper(
+        terrain_model,
         resolution=resolution,
-        spec=extraction.patch,
         crs=traverse.spec.crs,
+        calibration=traverse.spec.calibration,
+        extraction=extraction,
+        name=traverse.name,
     )
+    _frame_pass(traverse, mapper, features, n_jobs, progress)
+    if features is None:
+        features = mapper.features()
+    prediction = terrain_model.predict(features) if terrain_model is not None else None
+    mapper.fuse_classes(prediction.filtered_proba if prediction is not None else None)
+    grid = mapper.finish()
     grid.attrs["traverse"] = traverse.name
-    add_elevation(grid, traverse, progress=progress)
+    _log_map(features, grid, resolution)
     result = TraverseAnalysis(traverse, features, prediction, grid, terrain_model, extraction)
+    result.mapper = mapper
     has_images = any(f.left is not None for f in traverse.frames)
     run_far = near_far is True or (near_far == "auto" and has_images and prediction is not None)
     if run_far:
@@ -168,7 +191,53 @@ def analyse(
         if prediction is None:
             raise InputError("near-to-far needs a terrain model to label the near field")
         result.far, result.far_report = _near_to_far(result, prediction, far_weight, progress)
+        far_sums = [n for n in grid.layers if n.startswith("far_") and is_accumulator(grid, n)]
+        mapper.tiles.add_group("far")
+        mapper.tiles.add_layers_from(grid, far_sums)
     return result
+
+
+def _frame_pass(
+    traverse: Traverse,
+    mapper: OnlineMapper,
+    features: FeatureTable | None,
+    n_jobs: int,
+    progress: bool,
+) -> None:
+    """Every frame through the mapper: features (unless given) and heights, classes later."""
+    jobs = frame_jobs(traverse)
+    settings = traverse_pass(
+        traverse,
+        mapper.extraction,
+        height_resolution=mapper.tiles.resolution,
+        features=features is None,
+    )
+    if features is not None and len(features) != len(jobs):
+        raise InputError(
+            f"{traverse.name}: the features have {len(features)} rows, the traverse "
+            f"{len(jobs)} frames"
+        )
+    outputs = iter_frames(jobs, settings, n_jobs=n_jobs, progress=progress, desc=traverse.name)
+    for out in outputs:
+        if features is not None:
+            out = replace(out, row=features.row(out.index))
+        mapper.add(out, jobs[out.index].pose, classes=False)
+
+
+def _log_map(features: FeatureTable, grid: GridMap, resolution: float) -> None:
+    n, valid = len(features), int(np.sum(features.valid))
+    if n == 0:
+        warnings.warn("the traverse has no frames: the map is all nodata", EmptyMapWarning, 3)
+    elif valid == 0:
+        warnings.warn(
+            f"none of the {n} frames has a valid patch: the map is all nodata",
+            EmptyMapWarning,
+            3,
+        )
+    else:
+        log.info(
+            "fused %d of %d frames into a %s-cell map at %g m", valid, n, grid.shape, resolution
+        )
 
 
 def _load_model(name: PathLike) -> TerrainModel:
@@ -183,15 +252,6 @@ def _levels_config(model: TerrainModel | None) -> RoughnessLevels:
 def level_edges(result: TraverseAnalysis) -> tuple[float, ...]:
     """R thresholds (m³/rad) between the roughness levels used for ``result``."""
     return tuple(float(v) for v in _levels_config(result.model).values())
-
-
-def _levels(features: FeatureTable, model: TerrainModel | None) -> np.ndarray:
-    """Roughness level index per frame (0 low, 1 medium, 2 high; NaN invalid)."""
-    levels_cfg = _levels_config(model)
-    names = tuple(levels_cfg.levels)
-    lv = roughness_level(features["R"], names, levels_cfg.values())
-    lookup = {n: float(i) for i, n in enumerate(names)}
-    return np.array([lookup.get(str(v), math.nan) for v in lv])
 
 
 def _near_to_far(
@@ -251,3 +311,55 @@ def write_tables(result: TraverseAnalysis, out_dir: PathLike) -> dict[str, Path]
     if result.prediction is not None:
         paths["labels"] = write_labels(result.features, result.prediction, out / "labels.csv")
     return paths
+
+
+def write_outputs(
+    result: TraverseAnalysis,
+    out_dir: PathLike,
+    *,
+    png: bool = True,
+    gridmap_bag: bool = False,
+    state: bool = True,
+    progress: bool = False,
+) -> dict[str, Path]:
+    """Everything ``rough-map map`` writes for a traverse, into ``out_dir``.
+
+    ``map.tif`` and ``map_<class layer>.tif`` (:func:`rough_map.export.export_map`), one
+    PNG per layer, the tables (:func:`write_tables`) and, with ``state``,
+    ``map_state.npz``: the map's sums, which ``rough-map batch`` adds to other traverses'
+    (:meth:`rough_map.map.tiles.TiledMap.add_saved`).
+
+    Returns
+    -------
+    dict of str to Path
+        What was written, by kind.
+    """
+    from tqdm import tqdm
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    grid = result.map
+    written = export_map(grid, out, name="map", png=False, gridmap_bag=gridmap_bag)
+    if png:
+        layers = [n for n in grid.layers if grid.info(n).kind != "internal"]
+        for layer in tqdm(layers, desc="PNG", unit="layer", disable=not progress):
+            for name, path in write_pngs(grid, out, "map", layers=[layer]).items():
+                written[f"png_{name}"] = path
+    written.update(write_tables(result, out))
+    if state and result.mapper is not None:
+        written["state"] = result.mapper.save_state(out / "map_state.npz")
+    return written
+
+
+def summary(result: TraverseAnalysis, resolution: float) -> dict[str, Any]:
+    """The figures of a traverse's map: frames, valid frames, map shape, near-to-far
+    coverage and, with the simulator's truth, class accuracy."""
+    return {
+        "traverse": result.traverse.name,
+        "frames": len(result.features),
+        "valid": int(result.features.valid.sum()),
+        "map_shape": list(result.map.shape),
+        "resolution_m": resolution,
+        **result.far_report,
+        **result.truth_accuracy(),
+    }

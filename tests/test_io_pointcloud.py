@@ -121,6 +121,23 @@ def test_nan_rows_dropped(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> N
     assert "dropped 2 of 4 points" in caplog.text
 
 
+def test_finite_check_edge_cases(tmp_path: Path) -> None:
+    """The check sums all coordinates first: a sum that overflows keeps every finite point,
+    +inf and -inf (whose sum is NaN) are both dropped, float32 columns beyond z are ignored."""
+    huge = np.full((4, 3), 1e308)
+    np.save(tmp_path / "huge.npy", huge)
+    np.testing.assert_array_equal(read_cloud(tmp_path / "huge.npy"), huge)
+    cloud = np.array([[1.0, 2.0, 3.0], [np.inf, -np.inf, 0.0], [0.0, 0.0, -np.inf], [4, 5, 6]])
+    np.save(tmp_path / "inf.npy", cloud)
+    np.testing.assert_array_equal(read_cloud(tmp_path / "inf.npy"), cloud[[0, 3]])
+    wide = np.ones((3, 4), dtype=np.float32)
+    wide[:, 3] = np.nan  # an intensity column, not a coordinate
+    np.save(tmp_path / "wide.npy", wide)
+    got = read_cloud(tmp_path / "wide.npy")
+    assert got.dtype == np.float64 and got.flags.c_contiguous
+    np.testing.assert_array_equal(got, np.ones((3, 3)))
+
+
 def test_atomic_write_keeps_old_file_on_failure(points: np.ndarray, tmp_path: Path) -> None:
     target = write_cloud(tmp_path / "c.las", points)
     before = target.read_bytes()

@@ -336,7 +336,9 @@ def test_npz_cloud_reader(tmp_path):
 
 def test_world_truth_is_compact_and_round_trips(tmp_path):
     """Heights as int16 steps of relief / 65534 (at most 10 um), the class map deflated;
-    a wider relief stays float32, and files of the older float32 layout still load."""
+    a wider relief stays float32, and files of the older float32 layout still load. They
+    read back as float32 heights (within half a step and float32's rounding) and an int8
+    class map."""
     from rough_map.io.truth import HEIGHT_STEP, save_world
     from rough_map.types import HeightField
 
@@ -348,7 +350,8 @@ def test_world_truth_is_compact_and_round_trips(tmp_path):
     save_world(world, tmp_path / "w.npz")
     back = load_world(tmp_path / "w.npz")
     step = np.ptp(heights) / 65534
-    assert np.abs(back.heights - heights).max() <= step / 2 + 1e-12
+    assert back.heights.dtype == np.float32 and back.classes.dtype == np.int8
+    assert np.abs(back.heights - heights).max() <= step / 2 + np.spacing(np.float32(0.2))
     np.testing.assert_array_equal(back.classes, classes)
     assert (back.spacing, back.origin, back.class_names) == (0.002, (-3.0, -0.3), names)
     with np.load(tmp_path / "w.npz") as d:

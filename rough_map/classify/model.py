@@ -437,15 +437,9 @@ class TerrainModel(BaseEstimator):
         mode = self.mode if mode is None else mode
         if mode not in MODES:
             raise errors.InputError(f"mode must be forward, smooth or viterbi; got {mode!r}")
-        self._check_omega(table)
-        X, _ = feature_matrix(table)
-        valid = np.asarray(table.valid, dtype=bool) & np.isfinite(X).all(axis=1)
-        raw = np.full((len(X), len(self.classes_)), np.nan)
-        raw_class = np.full(len(X), "", dtype=object)
+        raw, valid = self.raw_proba(table)
+        raw_class = np.full(len(raw), "", dtype=object)
         if valid.any():
-            cols = np.searchsorted(self.classes_, self.classifier_.classes_)
-            raw[valid] = 0.0
-            raw[np.ix_(valid, cols)] = self.classifier_.predict_proba(X[valid])
             raw_class[valid] = self.classes_[np.argmax(raw[valid], axis=1)]
         distance = np.asarray(table.distance(), dtype=float)
         defect = self._defects(table, valid, distance, mode)
@@ -468,6 +462,37 @@ class TerrainModel(BaseEstimator):
             mode=mode,
             defect=defect,
         )
+
+    def raw_proba(self, table: Any) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        """The classifier's class probabilities per frame, before the path filter.
+
+        Parameters
+        ----------
+        table : FeatureTable
+            Features computed as ``extraction_`` says.
+
+        Returns
+        -------
+        proba : ndarray, shape (n_frames, K)
+            Over ``classes_``; NaN rows for frames without a valid measurement.
+        valid : ndarray of bool, shape (n_frames,)
+            Frames with one.
+
+        Raises
+        ------
+        ModelError
+            The table's spectrum has other wavenumbers than the model's (another patch).
+        """
+        self._check_fitted()
+        self._check_omega(table)
+        X, _ = feature_matrix(table)
+        valid = np.asarray(table.valid, dtype=bool) & np.isfinite(X).all(axis=1)
+        raw = np.full((len(X), len(self.classes_)), np.nan)
+        if valid.any():
+            cols = np.searchsorted(self.classes_, self.classifier_.classes_)
+            raw[valid] = 0.0
+            raw[np.ix_(valid, cols)] = self.classifier_.predict_proba(X[valid])
+        return raw, valid
 
     def _check_omega(self, table: Any) -> None:
         """Raise ModelError unless the table's wavenumbers are the model's."""

@@ -22,7 +22,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NoReturn
 
-from rough_map.config import jsonable
 from rough_map.patch import DEFAULT_AHEAD, DEFAULT_SIZE, DEFAULT_SPACING, PatchSpec
 
 # --------------------------------------------------------------------------- the parser
@@ -190,6 +189,27 @@ def existing_path(text: str) -> Path:
 # --------------------------------------------------------------------------- argument groups
 
 
+def jobs(text: str) -> int:
+    """Argument type of ``-j``: a number of processes >= 1, or -1 for every core."""
+    value = _number(text, int)
+    if value < 1 and value != -1:
+        raise argparse.ArgumentTypeError(f"expected a number of processes >= 1 or -1, got {text!r}")
+    return int(value)
+
+
+def add_jobs_arg(parser: argparse.ArgumentParser) -> None:
+    """``-j/--jobs N``: worker processes for the frames (joblib)."""
+    parser.add_argument(
+        "-j",
+        "--jobs",
+        type=jobs,
+        default=1,
+        metavar="N",
+        help="worker processes for the frames (default 1; -1: every core); the outputs are "
+        "the same for any N",
+    )
+
+
 def add_traverses_arg(parser: argparse.ArgumentParser, *, many: bool = False) -> None:
     """The positional TRAVERSE (or TRAVERSE... with ``many``): folder, file or table."""
     parser.add_argument(
@@ -297,6 +317,8 @@ def emit_json(obj: Any, *, indent: int | None = None) -> None:
     The whole document is built before anything is written, so an object JSON cannot hold
     raises without leaving half a document on stdout.
     """
+    from rough_map.config import jsonable  # pydantic, yaml: only when JSON is printed
+
     text = json.dumps(jsonable(obj), indent=indent, separators=(",", ": "), allow_nan=False)
     sys.stdout.write(text + "\n")
     sys.stdout.flush()

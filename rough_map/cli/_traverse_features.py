@@ -32,7 +32,7 @@ def run_traverse(args: argparse.Namespace) -> int:
         subtract_noise=not args.keep_noise,
     )
     feats = traverse_features(
-        args.source, extraction, source=args.points_from, progress=args.progress
+        args.source, extraction, source=args.points_from, n_jobs=args.jobs, progress=args.progress
     )
     write_features(feats, args.out)
     valid = feats.valid

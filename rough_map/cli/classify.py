@@ -18,6 +18,7 @@ from pathlib import Path
 
 from rough_map._files import atomic_output
 from rough_map.cli._common import (
+    add_jobs_arg,
     add_mode_arg,
     add_model_arg,
     add_traverses_arg,
@@ -26,7 +27,6 @@ from rough_map.cli._common import (
     table,
 )
 from rough_map.errors import InputError
-from rough_map.features import feature_tables
 
 COLUMNS = (
     "frame",
@@ -65,6 +65,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--out", type=Path, required=True, metavar="labels.csv", help="the per-frame CSV to write"
     )
     add_mode_arg(p)
+    add_jobs_arg(p)
     p.add_argument("--json", action="store_true", help="print a JSON summary")
     p.set_defaults(func=run)
 
@@ -80,11 +81,14 @@ def _fmt(value: object) -> str:
 def run(args: argparse.Namespace) -> int:
     # rough_map.classify imports scikit-learn and skops: only when classifying
     from rough_map.classify import load_terrain_model
+    from rough_map.features import feature_tables
 
     if args.out.suffix.lower() != ".csv":
         raise InputError(f"--out must be a .csv file, not {args.out.name!r}")
     model = load_terrain_model(args.model)
-    (tab,) = feature_tables([args.traverse], model.extraction_, progress=args.progress)
+    (tab,) = feature_tables(
+        [args.traverse], model.extraction_, n_jobs=args.jobs, progress=args.progress
+    )
     pred = model.predict(tab, mode=args.mode)
     cols = tab.columns
     raw_p = pred.raw_confidence

@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from rough_map.cli._common import (
+    add_jobs_arg,
     add_mode_arg,
     add_model_arg,
     add_traverses_arg,
@@ -36,8 +37,6 @@ from rough_map.cli._common import (
     status,
     table,
 )
-from rough_map.evaluation import evaluate_model
-from rough_map.features import feature_tables
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -54,6 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_traverses_arg(p, many=True)
     add_model_arg(p)
     add_mode_arg(p)
+    add_jobs_arg(p)
     p.add_argument("--json", action="store_true", help="print the results as JSON")
     p.add_argument(
         "--plot",
@@ -99,9 +99,13 @@ def _report(part: dict[str, Any], title: str) -> str:
 def run(args: argparse.Namespace) -> int:
     # rough_map.classify imports scikit-learn and skops: only when evaluating
     from rough_map.classify import load_terrain_model
+    from rough_map.evaluation import evaluate_model
+    from rough_map.features import feature_tables
 
     model = load_terrain_model(args.model)
-    tables = feature_tables(args.traverses, model.extraction_, progress=args.progress)
+    tables = feature_tables(
+        args.traverses, model.extraction_, n_jobs=args.jobs, progress=args.progress
+    )
     result = evaluate_model(model, tables, args.mode)
     result["model"] = str(args.model)
     fr = result["frames"]

@@ -6,7 +6,6 @@ import argparse
 from pathlib import Path
 
 from rough_map.cli._common import existing_path, positive_int
-from rough_map.io.rosbag import import_bag
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -43,6 +42,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from rough_map.io.rosbag import import_bag
+
     traverse = import_bag(
         args.bag,
         args.out,

@@ -6,7 +6,6 @@ import argparse
 from dataclasses import asdict
 
 from rough_map.cli._common import emit_json, existing_path
-from rough_map.io.rosbag import inspect_bag
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -24,6 +23,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from rough_map.io.rosbag import inspect_bag
+
     info = inspect_bag(args.bag)
     if args.json:
         data = {

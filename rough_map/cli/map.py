@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from rough_map.cli._common import (
+    add_jobs_arg,
     add_model_arg,
     add_traverses_arg,
     emit_json,
@@ -15,9 +15,6 @@ from rough_map.cli._common import (
     table,
 )
 from rough_map.resources import model_base
-
-if TYPE_CHECKING:
-    from rough_map.map.grid import GridMap
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -30,8 +27,10 @@ def register(sub: argparse._SubParsersAction) -> None:
             "class probabilities, count, last seen, elevation) and, when the frames have "
             "stereo images, extend it beyond the patch with near-to-far learning. Writes "
             "DIR/map.tif (float bands), DIR/map_class.tif (class with colour table), one PNG "
-            "per layer, DIR/labels.csv and DIR/features.csv (with its metadata in "
-            "DIR/features.csv.json)."
+            "per layer, DIR/labels.csv, DIR/features.csv (with its metadata in "
+            "DIR/features.csv.json) and DIR/map_state.npz (the fusion sums, which "
+            "`rough-map batch` adds up across traverses). Each cloud is read once; -j N "
+            "spreads the frames over N processes with the same result."
         ),
     )
     add_traverses_arg(p)
@@ -58,6 +57,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="also write a grid_map_msgs/GridMap message in an MCAP bag",
     )
+    add_jobs_arg(p)
     p.add_argument("--json", action="store_true", help="paths and figures as JSON on stdout")
     p.set_defaults(func=run)
 
@@ -72,8 +72,7 @@ def default_model() -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rough_map.export import export_map
-    from rough_map.workflow import analyse, write_tables
+    from rough_map.workflow import analyse, summary, write_outputs
 
     out: Path = args.out
     near_far = NEAR_FAR[args.near_far]
@@ -82,26 +81,16 @@ def run(args: argparse.Namespace) -> int:
         args.model or default_model(),
         resolution=args.resolution,
         near_far=near_far,
+        n_jobs=args.jobs,
         progress=args.progress,
     )
-    out.mkdir(parents=True, exist_ok=True)
-    written = export_map(result.map, out, name="map", png=False, gridmap_bag=args.gridmap_bag)
-    if not args.no_png:
-        written.update(_write_pngs(result.map, out, progress=args.progress))
-    written.update(write_tables(result, out))
+    written = write_outputs(
+        result, out, png=not args.no_png, gridmap_bag=args.gridmap_bag, progress=args.progress
+    )
     paths = {k: str(v) for k, v in written.items()}
-    summary = {
-        "traverse": result.traverse.name,
-        "frames": len(result.features),
-        "valid": int(result.features.valid.sum()),
-        "map_shape": list(result.map.shape),
-        "resolution_m": args.resolution,
-        **result.far_report,
-        **result.truth_accuracy(),
-        "outputs": paths,
-    }
+    figures = summary(result, args.resolution)
     if args.json:
-        emit_json(summary)
+        emit_json({**figures, "outputs": paths})
         return 0
     rows = [[k, v] for k, v in paths.items()]
     print(table(rows, ["output", "path"]))
@@ -112,27 +101,12 @@ def run(args: argparse.Namespace) -> int:
             f"near field {r['near_area_m2']:.1f} m², with near-to-far "
             f"{r['near_far_area_m2']:.1f} m² (×{r['area_ratio']:.1f})",
         )
-    if "near_class_accuracy" in summary:
-        far = summary.get("far_class_accuracy")
+    if "near_class_accuracy" in figures:
+        far = figures.get("far_class_accuracy")
         status(
             args,
             f"against the simulator's truth: near-field class accuracy "
-            f"{summary['near_class_accuracy']:.3f}"
+            f"{figures['near_class_accuracy']:.3f}"
             + ("" if far is None else f", far-field {far:.3f}"),
         )
     return 0
-
-
-def _write_pngs(grid: GridMap, out: Path, *, progress: bool) -> dict[str, Path]:
-    """One PNG per layer (as :func:`rough_map.export.export_map` draws them), with a
-    progress bar: drawing them is the longest step after the features."""
-    from tqdm import tqdm
-
-    from rough_map.export.png import write_pngs
-
-    layers = [n for n in grid.layers if grid.info(n).kind != "internal"]
-    written: dict[str, Path] = {}
-    for layer in tqdm(layers, desc="PNG", unit="layer", disable=not progress):
-        for name, path in write_pngs(grid, out, "map", layers=[layer]).items():
-            written[f"png_{name}"] = path
-    return written

@@ -5,7 +5,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from rough_map.cli._common import add_model_arg, add_traverses_arg, positive_float, status
+from rough_map.cli._common import (
+    add_jobs_arg,
+    add_model_arg,
+    add_traverses_arg,
+    positive_float,
+    status,
+)
 from rough_map.cli.map import NEAR_FAR, default_model
 
 
@@ -43,6 +49,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         default="auto",
         help="near-to-far from the stereo images (auto: when there are images)",
     )
+    add_jobs_arg(p)
     p.set_defaults(func=run)
 
 
@@ -59,6 +66,7 @@ def run(args: argparse.Namespace) -> int:
         model_path,
         resolution=args.resolution,
         near_far=near_far,
+        n_jobs=args.jobs,
         progress=args.progress,
     )
     evaluation = None

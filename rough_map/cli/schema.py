@@ -7,8 +7,6 @@ import logging
 import sys
 from pathlib import Path
 
-from rough_map.config import schema_texts, write_schemas
-
 log = logging.getLogger(__name__)
 
 
@@ -31,6 +29,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from rough_map.config import schema_texts, write_schemas
+
     out = Path(args.out)
     if not args.check:
         for path in write_schemas(out):

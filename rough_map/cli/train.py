@@ -37,6 +37,7 @@ import argparse
 from pathlib import Path
 
 from rough_map.cli._common import (
+    add_jobs_arg,
     add_patch_args,
     add_traverses_arg,
     emit_json,
@@ -47,8 +48,6 @@ from rough_map.cli._common import (
     table,
 )
 from rough_map.errors import InputError
-from rough_map.features import feature_tables, write_features
-from rough_map.io.traverse import load_traverse
 from rough_map.patch import Extraction
 
 #: rough_map.classify.CLASSIFIERS, spelled out so that the parser does not import sklearn.
@@ -110,6 +109,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "to DIR/NAME.csv.json)",
     )
     add_patch_args(p)
+    add_jobs_arg(p)
     p.add_argument("--json", action="store_true", help="print the model card as JSON")
     p.set_defaults(func=run)
 
@@ -117,12 +117,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     # rough_map.classify and rough_map.filter import scikit-learn: only when training
     from rough_map.classify import load_roughness_levels, read_card, save_terrain_model
+    from rough_map.features import feature_tables, write_features
     from rough_map.filter import make_terrain_model
 
     levels = load_roughness_levels(args.levels)
     _check_labelled(args.traverses)
     extraction = Extraction(patch=patch_spec(args), use_imu=not args.no_tilt).to_dict()
-    tables = feature_tables(args.traverses, extraction, progress=args.progress)
+    tables = feature_tables(args.traverses, extraction, n_jobs=args.jobs, progress=args.progress)
     if args.save_features is not None:
         args.save_features.mkdir(parents=True, exist_ok=True)
         for src, tab in zip(args.traverses, tables, strict=True):
@@ -170,6 +171,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _check_labelled(sources: list[Path]) -> None:
     """Refuse traverses without any label before spending time on their features."""
+    from rough_map.io.traverse import load_traverse
+
     for src in sources:
         if src.is_file() and src.suffix.lower() in (".csv", ".parquet"):
             continue  # a features table: checked when the model is fitted

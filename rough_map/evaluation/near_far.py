@@ -1,8 +1,9 @@
 """Scores of near-to-far against a known world (the simulator's truth): far-field accuracy
 by distance, and the ground area covered with and without the far field.
 
-The world is a :class:`~rough_map.types.HeightField` with a class map, e.g. read with
-:func:`rough_map.io.truth.traverse_truth` from a simulated traverse; the predictions come
+The world is a :class:`~rough_map.types.HeightField` with a class map or a
+:class:`~rough_map.io.truth.TiledWorld` (a long world, read a tile at a time), e.g. from
+:func:`rough_map.io.truth.traverse_truth` on a simulated traverse; the predictions come
 from :func:`rough_map.map.near_far.run_traverse`.
 """
 
@@ -17,9 +18,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from rough_map.errors import InputError
 from rough_map.geometry import pose_matrix
+from rough_map.io.truth import TiledWorld, World
 from rough_map.map.near_far import FarPrediction, NearField
 from rough_map.patch import Extraction, PatchSpec
-from rough_map.types import HeightField
 
 __all__ = [
     "DEFAULT_BINS",
@@ -35,7 +36,7 @@ __all__ = [
 DEFAULT_BINS = (1.5, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0)
 
 
-def world_class(world: HeightField, x: ArrayLike, y: ArrayLike) -> NDArray[np.int64]:
+def world_class(world: World, x: ArrayLike, y: ArrayLike) -> NDArray[np.int64]:
     """Class index (into ``world.class_names``) of the world's nearest cell at (x, y), m;
     -1 outside the world or where it has no height.
 
@@ -44,20 +45,26 @@ def world_class(world: HeightField, x: ArrayLike, y: ArrayLike) -> NDArray[np.in
     InputError
         The world has no class map.
     """
-    if world.classes is None:
+    if not isinstance(world, TiledWorld) and world.classes is None:
         raise InputError("the world has no class map")
-    ny, nx = world.classes.shape
+    ny, nx = world.shape
     col = np.rint((np.asarray(x) - world.origin[0]) / world.spacing).astype(np.int64)
     row = np.rint((np.asarray(y) - world.origin[1]) / world.spacing).astype(np.int64)
     ok = (col >= 0) & (col < nx) & (row >= 0) & (row < ny)
     out = np.full(col.shape, -1, dtype=np.int64)
-    out[ok] = world.classes[row[ok], col[ok]]
-    if ok.any():
-        out[ok] = np.where(np.isfinite(world.heights[row[ok], col[ok]]), out[ok], -1)
+    if not ok.any():
+        return out
+    if isinstance(world, TiledWorld):
+        classes, finite = world.lookup(row[ok], col[ok])
+    else:
+        assert world.classes is not None
+        classes = world.classes[row[ok], col[ok]]
+        finite = np.isfinite(world.heights[row[ok], col[ok]])
+    out[ok] = np.where(finite, classes, -1)
     return out
 
 
-def class_remap(classes: Sequence[str], world: HeightField) -> NDArray[np.int64]:
+def class_remap(classes: Sequence[str], world: World) -> NDArray[np.int64]:
     """Index in ``classes`` of each of ``world.class_names`` (-1 if absent): maps the world's
     class indices to those of predictions over ``classes``."""
     lookup = {name: i for i, name in enumerate(classes)}
@@ -139,7 +146,7 @@ class AccuracyTable:
 
 def far_field_accuracy(
     predictions: Sequence[FarPrediction],
-    world: HeightField,
+    world: World,
     bins: Sequence[float] = DEFAULT_BINS,
     *,
     threshold: float = 0.0,
@@ -150,7 +157,7 @@ def far_field_accuracy(
     ----------
     predictions : sequence of FarPrediction
         E.g. from :func:`rough_map.map.near_far.run_traverse`.
-    world : HeightField
+    world : HeightField or TiledWorld
         The true world, with ``classes`` and ``class_names``; predictions are compared with
         the class of the world cell nearest to their (x, y). Cells outside the world (or of a
         class the predictions do not know) are not counted.
@@ -230,7 +237,7 @@ class Coverage:
 def area_coverage(
     predictions: Sequence[FarPrediction],
     poses: ArrayLike,
-    world: HeightField,
+    world: World,
     patch: PatchSpec | Extraction,
     *,
     cell: float = 0.1,
@@ -245,7 +252,7 @@ def area_coverage(
     poses : array_like, shape (F, 6)
         Poses of every frame whose near-field patch geometry classified, ``(x, y, z, roll,
         pitch, yaw)`` in m and rad (:meth:`Traverse.poses`).
-    world : HeightField
+    world : HeightField or TiledWorld
         The true world: only cells inside it with a class count (the simulated world is a
         strip; what lies beyond cannot be checked), and it gives the truth for ``accuracy``.
     patch : PatchSpec or Extraction
@@ -292,7 +299,7 @@ def area_coverage(
 
 
 def _near_cells(
-    poses: NDArray[np.float64], world: HeightField, near: NearField, cell: float
+    poses: NDArray[np.float64], world: World, near: NearField, cell: float
 ) -> set[tuple[int, int]]:
     """Counting cells (inside the world) hit by the near field of any pose: each patch is
     sampled at a quarter cell."""
@@ -310,7 +317,7 @@ def _near_cells(
 
 
 def _far_cells(
-    predictions: Sequence[FarPrediction], world: HeightField, cell: float, threshold: float
+    predictions: Sequence[FarPrediction], world: World, cell: float, threshold: float
 ) -> tuple[dict[tuple[int, int], NDArray[np.float64]], tuple[str, ...]]:
     """Sums of the confident probabilities predicted for each counting cell inside the
     world, and the class names of the predictions."""

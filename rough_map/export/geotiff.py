@@ -19,7 +19,9 @@ geodetic origin, a transverse Mercator centred on that origin; without origin, a
 engineering CRS (``LOCAL_CS``, metres). Dataset tags give ``crs_code``, ``frame_id``,
 ``geodetic_origin`` (JSON ``[lat, lon, alt]``), ``class_names``, ``level_names``.
 
-Files are written to a temporary name and moved into place.
+Files are written to a temporary name and moved into place. The bands go there through an
+intermediate tiled GTiff on disk beside it, a few tiles at a time with GDAL's cache bounded,
+so that writing a long map needs little memory beyond the map itself.
 """
 
 from __future__ import annotations
@@ -153,50 +155,116 @@ def _creation_options(profile: Mapping[str, Any], driver: str) -> dict[str, Any]
     return opts
 
 
+#: GDAL's block cache while a file is written, bytes. The bands go to a file on disk a few
+#: tiles at a time, so a small cache is enough and keeps a long map's memory low.
+_GDAL_CACHE_BYTES = 8 << 20
+
+#: Cells of all bands handed to GDAL at once: about this many bytes, in whole tiles.
+_CHUNK_BYTES = 4 << 20
+
+#: ``cells(r0, r1, c0, c1)`` -> the bands' cells ``[r0:r1, c0:c1]`` (north-up) as an array
+#: (count, r1 - r0, c1 - c0) of the file's data type.
+_CellReader = Callable[[int, int, int, int], np.ndarray]
+
+
+def _source_block(width: int) -> tuple[int, int]:
+    """Tile (columns, rows) of the intermediate file: 16 rows, so that a long map's 30-odd
+    rows are not padded much; at most 256 columns (a tile of the COG reads whole tiles of
+    it), fewer for a narrow map (a multiple of 16, as TIFF tiles are)."""
+    return min(256, -(-width // 16) * 16), 16
+
+
+def _chunks(
+    shape: tuple[int, int], block: tuple[int, int], cell_bytes: int
+) -> list[tuple[int, int, int, int]]:
+    """Windows ``(r0, r1, c0, c1)`` covering ``shape`` in whole tiles ``block`` (columns,
+    rows) of ``cell_bytes`` a cell, each of about :data:`_CHUNK_BYTES` (at least a tile)."""
+    height, width = shape
+    block_x, block_y = block
+    tile_row_bytes = width * block_y * cell_bytes
+    if tile_row_bytes <= _CHUNK_BYTES:
+        rows, cols = block_y * (_CHUNK_BYTES // tile_row_bytes), width
+    else:
+        rows = block_y
+        cols = block_x * max(1, _CHUNK_BYTES // (block_x * block_y * cell_bytes))
+    return [
+        (r0, min(height, r0 + rows), c0, min(width, c0 + cols))
+        for r0 in range(0, height, rows)
+        for c0 in range(0, width, cols)
+    ]
+
+
 def _write(
     grid: GridMap,
     path: str | Path,
-    bands: np.ndarray,
+    count: int,
+    cells: _CellReader,
     profile: Mapping[str, Any],
     describe: Callable[[Any], None],
 ) -> Path:
-    """Write ``bands`` (count, rows, cols; north-up) through an in-memory GTiff with
-    overviews, copied to ``path`` as COG (or tiled GTiff)."""
+    """Write ``count`` bands of the map's shape, read a window at a time by ``cells``, to
+    ``path`` as COG (or tiled GTiff) with overviews.
+
+    The bands (never all of them at once in memory), their tags and overviews go to a tiled
+    GTiff on disk next to ``path`` (not in memory, where a long map would be held twice),
+    then copied to ``path`` as COG with those overviews; GDAL's cache is bounded meanwhile
+    (:data:`_GDAL_CACHE_BYTES`). The result is byte for byte the file that writing all the
+    bands at once to an in-memory GTiff gives: the intermediate file is pixel-interleaved
+    like that one, so GDAL computes the overviews the same way (their values do not depend
+    on the tiling, but band-interleaved, GDAL computes them band by band another way, and
+    the small overviews of a narrow map come out different).
+    """
     import rasterio
     from rasterio.enums import Resampling
-    from rasterio.io import MemoryFile
     from rasterio.shutil import copy as rio_copy
+    from rasterio.windows import Window
 
-    count, height, width = bands.shape
+    height, width = grid.shape
     if height == 0 or width == 0:
         raise InputError(f"cannot write an empty map of shape {grid.shape}")
     driver = profile["driver"]
-    with rasterio.Env() as env:
+    block = _source_block(width)
+    cell_bytes = count * np.dtype(profile["dtype"]).itemsize
+    path = Path(path)
+    with rasterio.Env(GDAL_CACHEMAX=_GDAL_CACHE_BYTES) as env:
         if driver == "COG" and "COG" not in env.drivers():
             log.info("GDAL has no COG driver; writing a tiled GTiff with overviews")
             driver = "GTiff"
-    path = Path(path)
-    with MemoryFile() as mem:
-        with mem.open(
-            driver="GTiff",
-            width=width,
-            height=height,
-            count=count,
-            dtype=profile["dtype"],
-            crs=rasterio_crs(grid.crs),
-            transform=grid.geometry.transform(),
-            nodata=profile["nodata"],
-        ) as ds:
-            ds.write(bands)
-            ds.update_tags(**_dataset_tags(grid))
-            describe(ds)
-            ds.build_overviews(
-                overview_factors((height, width), int(profile["overview_min_size"])),
-                Resampling[profile["overview_resampling"]],
-            )
-            ds.update_tags(ns="rio_overview", resampling=profile["overview_resampling"])
-        with mem.open() as src, atomic_output(path) as tmp:
-            rio_copy(src, tmp, driver=driver, **_creation_options(profile, driver))
+        with atomic_output(path) as tmp:
+            src_path = tmp.with_name(f"{tmp.stem}.src.tif")
+            try:
+                with rasterio.open(
+                    src_path,
+                    "w",
+                    driver="GTiff",
+                    width=width,
+                    height=height,
+                    count=count,
+                    dtype=profile["dtype"],
+                    crs=rasterio_crs(grid.crs),
+                    transform=grid.geometry.transform(),
+                    nodata=profile["nodata"],
+                    tiled=True,
+                    blockxsize=block[0],
+                    blockysize=block[1],
+                    interleave="pixel",
+                    bigtiff="if_safer",
+                ) as ds:
+                    for r0, r1, c0, c1 in _chunks((height, width), block, cell_bytes):
+                        window = Window(c0, r0, c1 - c0, r1 - r0)
+                        ds.write(cells(r0, r1, c0, c1), window=window)
+                    ds.update_tags(**_dataset_tags(grid))
+                    describe(ds)
+                    ds.build_overviews(
+                        overview_factors((height, width), int(profile["overview_min_size"])),
+                        Resampling[profile["overview_resampling"]],
+                    )
+                    ds.update_tags(ns="rio_overview", resampling=profile["overview_resampling"])
+                with rasterio.open(src_path) as src:
+                    rio_copy(src, tmp, driver=driver, **_creation_options(profile, driver))
+            finally:
+                src_path.unlink(missing_ok=True)
+                src_path.with_name(f"{src_path.name}.aux.xml").unlink(missing_ok=True)
     log.info("wrote %s (%d band(s) of %d x %d cells, %s)", path, count, height, width, driver)
     return path
 
@@ -230,7 +298,15 @@ def write_values_geotiff(
     names = list(layers) if layers is not None else value_layers(grid)
     if not names:
         raise InputError("the map has no value layer to write")
-    bands = np.stack([np.flipud(grid[n]) for n in names]).astype(prof["dtype"])
+    height = grid.shape[0]
+
+    def cells(r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        # north-up rows r0:r1 are the map's rows height-r1:height-r0, flipped; converted
+        # one layer at a time, never all layers as float64
+        out = np.empty((len(names), r1 - r0, c1 - c0), dtype=prof["dtype"])
+        for i, name in enumerate(names):
+            out[i] = grid[name][height - r1 : height - r0, c0:c1][::-1]
+        return out
 
     def describe(ds: Any) -> None:
         for b, name in enumerate(names, start=1):
@@ -244,7 +320,7 @@ def write_values_geotiff(
                 tags.update({f"VALUE_{i}": c for i, c in enumerate(info.categories)})
             ds.update_tags(b, **tags)
 
-    return _write(grid, path, bands, prof, describe)
+    return _write(grid, path, len(names), cells, prof, describe)
 
 
 def write_class_geotiff(
@@ -279,8 +355,11 @@ def write_class_geotiff(
         raise InputError(f"layer {layer!r} is not a class layer with category names")
     if len(names) >= CLASS_NODATA:
         raise InputError(f"{len(names)} classes do not fit a uint8 band with nodata 255")
-    values = np.flipud(grid[layer])
-    band = np.where(np.isfinite(values), values, CLASS_NODATA).astype(np.uint8)
+    height = grid.shape[0]
+
+    def cells(r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        values = grid[layer][height - r1 : height - r0, c0:c1][::-1]
+        return np.where(np.isfinite(values), values, CLASS_NODATA).astype(np.uint8)[None]
 
     def describe(ds: Any) -> None:
         ds.set_band_description(1, layer)
@@ -296,4 +375,4 @@ def write_class_geotiff(
         )
         ds.write_colormap(1, class_colours(names))
 
-    return _write(grid, path, band[None], prof, describe)
+    return _write(grid, path, 1, cells, prof, describe)

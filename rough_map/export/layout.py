@@ -87,13 +87,16 @@ def data_view(
     cell is true.
     """
     x0, x1, y0, y1 = (float(v) for v in extent)
-    rows, cols = np.nonzero(mask)
+    mask = np.asarray(mask, dtype=bool)
+    # the rows and columns holding a true cell (not the indices of every true cell: a long
+    # map has millions)
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
     if rows.size == 0:
         return x0, x1, y0, y1
     ny, nx = mask.shape
     dx, dy = (x1 - x0) / nx, (y1 - y0) / ny
-    vx0, vx1 = x0 + cols.min() * dx, x0 + (cols.max() + 1) * dx
-    vy0, vy1 = y0 + rows.min() * dy, y0 + (rows.max() + 1) * dy
+    vx0, vx1 = x0 + cols[0] * dx, x0 + (cols[-1] + 1) * dx
+    vy0, vy1 = y0 + rows[0] * dy, y0 + (rows[-1] + 1) * dy
     pad = max(2 * max(dx, dy), margin * max(vx1 - vx0, vy1 - vy0))
     vx0, vx1, vy0, vy1 = vx0 - pad, vx1 + pad, vy0 - pad, vy1 + pad
     # a few known cells: show 20 cells around them, not one cell as a huge square
@@ -329,13 +332,19 @@ def _draw_map(fig: Any, pl: _Plan, map_top: float, track_colour: str) -> Any:
     ax = fig.add_axes(rect)
     ax.set_facecolor(_BACKGROUND)
     cmap, norm = _colour_scale(p)
+    # NaN cells are masked (transparent) by imshow itself, which copies the data anyway.
+    # Sampling the nearest cell of each pixel and then colouring it ("data") gives the
+    # picture that colouring every cell and then sampling ("rgba", matplotlib's choice for
+    # a map of more cells than pixels) gives, without two RGBA copies of the whole map (64
+    # bytes a cell: 35 MB for a 1.8 km strip)
     image = ax.imshow(
-        np.ma.masked_invalid(pl.data),
+        pl.data,
         origin="lower",
         extent=p.extent,
         cmap=cmap,
         norm=norm,
         interpolation="nearest",
+        interpolation_stage="data",
     )
     if p.track is not None and len(p.track):
         tr = np.asarray(p.track, dtype=float)

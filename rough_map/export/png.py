@@ -16,6 +16,7 @@ is drawn when the map has one.
 
 from __future__ import annotations
 
+import gc
 import logging
 import math
 from collections.abc import Sequence
@@ -92,11 +93,12 @@ def _group(layer: str) -> str:
 
 
 def _display_values(grid: GridMap, layer: str) -> np.ndarray:
-    """The layer with cells nothing has written as NaN (a count of 0 is no data)."""
-    data = np.array(grid[layer], dtype=float)
+    """The layer with cells nothing has written as NaN (a count of 0 is no data); the
+    layer itself (not a copy) when it is float and needs no change. Read only."""
+    data = np.asarray(grid[layer], dtype=float)
     info = grid.info(layer)
     if info.fill == 0 and not info.categories:
-        data[data == 0] = np.nan
+        return np.where(data == 0, np.nan, data)
     return data
 
 
@@ -214,8 +216,15 @@ def write_layer_png(
     """
     fig = layer_figure(grid, layer, style=style, title=title, view=view)
     path = Path(path)
-    with atomic_output(path) as tmp:
-        fig.savefig(tmp, format="png")
+    try:
+        with atomic_output(path) as tmp:
+            fig.savefig(tmp, format="png")
+    finally:
+        # a figure is a web of reference cycles, which only a full collection frees: without
+        # one, the figures of a long map (each holding copies of its layer and a canvas)
+        # pile up over the PNGs
+        del fig
+        gc.collect()
     log.debug("wrote %s", path)
     return path
 

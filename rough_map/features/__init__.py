@@ -9,18 +9,15 @@ several traverses.
 * :mod:`rough_map.features.table`: :class:`FeatureTable`, its columns and units, and
   :func:`label_summary` (R and w by label);
 * :mod:`rough_map.features.extract`: :func:`cloud_roughness` and :func:`frame_features`
-  (one cloud), :func:`traverse_features`, :func:`feature_tables`;
+  (one cloud);
+* :mod:`rough_map.features.frames`: one pass over a traverse's frames, each cloud read once,
+  on several processes (:func:`iter_frames`), :func:`traverse_features`,
+  :func:`feature_tables`;
 * :mod:`rough_map.features.files`: :func:`write_features` / :func:`read_features` (plain
   CSV with its JSON metadata beside it, or Parquet).
 """
 
-from rough_map.features.extract import (
-    SOURCES,
-    cloud_roughness,
-    feature_tables,
-    frame_features,
-    traverse_features,
-)
+from rough_map.features.extract import cloud_roughness, frame_features
 from rough_map.features.files import (
     FEATURES_FORMAT,
     FEATURES_FORMAT_VERSION,
@@ -28,6 +25,17 @@ from rough_map.features.files import (
     features_metadata_path,
     read_features,
     write_features,
+)
+from rough_map.features.frames import (
+    SOURCES,
+    FrameJob,
+    FrameOutput,
+    FramePass,
+    HeightSample,
+    feature_tables,
+    frame_jobs,
+    iter_frames,
+    traverse_features,
 )
 from rough_map.features.table import (
     COLUMN_UNITS,
@@ -44,12 +52,18 @@ __all__ = [
     "FEATURES_FORMAT_VERSION",
     "SOURCES",
     "FeatureTable",
+    "FrameJob",
+    "FrameOutput",
+    "FramePass",
+    "HeightSample",
     "LabelSummary",
     "cloud_roughness",
     "feature_tables",
     "features_metadata",
     "features_metadata_path",
     "frame_features",
+    "frame_jobs",
+    "iter_frames",
     "label_summary",
     "read_features",
     "traverse_features",

@@ -1,15 +1,16 @@
-"""From frames to features: the one place that turns a traverse into a :class:`FeatureTable`.
+"""From one frame's points to its features, and from the frames' rows to a :class:`FeatureTable`.
 
-For each frame of a :class:`~rough_map.io.traverse.Traverse` :func:`traverse_features`
+For the points of one frame (vehicle frame) :func:`frame_features`
 
-1. takes the frame's point cloud (vehicle frame), or reconstructs one from its stereo pair;
-2. optionally compensates tilt with the frame's IMU roll and pitch (paper Eq. 11);
-3. cuts and grids the patch of interest (:func:`rough_map.patch.grid_points`);
-4. estimates R, w and their uncertainty along the direction of travel, and the same across
+1. optionally compensates tilt with the frame's IMU roll and pitch (paper Eq. 11);
+2. cuts and grids the patch of interest (:func:`rough_map.patch.grid_points`);
+3. estimates R, w and their uncertainty along the direction of travel, and the same across
    it (anisotropy), with the gap policy of :mod:`rough_map.psd`;
-5. records whether the patch is valid, and why not: too few points, too many empty cells,
-   a patch the estimator refuses, no stereo pair to take the points from, an unreadable
-   file. An invalid frame never stops the run.
+4. records whether the patch is valid, and why not: too few points, too many empty cells,
+   a patch the estimator refuses. An invalid frame never stops the run.
+
+:mod:`rough_map.features.frames` runs it over a traverse's frames (reading each cloud or
+stereo pair once) and :func:`feature_table` gathers the rows.
 
 What is measured, and how, is one :class:`rough_map.patch.Extraction` (the patch, the IMU
 use, the estimator and its noise floor), as a terrain model records it.
@@ -19,16 +20,11 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Mapping, Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from rough_map._files import PathLike
-from rough_map.config import StereoCalibration
-from rough_map.errors import FileFormatError, InputError, RoughMapError
-from rough_map.features.files import read_features
+from rough_map.errors import RoughMapError
 from rough_map.features.table import (
     BOOL_COLUMNS,
     COLUMNS,
@@ -36,23 +32,16 @@ from rough_map.features.table import (
     TEXT_COLUMNS,
     FeatureTable,
 )
-from rough_map.io.traverse import Traverse, load_traverse
 from rough_map.patch import Extraction, GriddedPatch, PatchSpec, grid_points
 from rough_map.psd import PatchRoughness, patch_roughness
-from rough_map.stereo import read_image, stereo_to_cloud
 
 log = logging.getLogger(__name__)
 
 __all__ = [
-    "SOURCES",
     "cloud_roughness",
-    "feature_tables",
+    "feature_table",
     "frame_features",
-    "traverse_features",
 ]
-
-#: Where the points of a frame come from (:func:`traverse_features`'s ``source``).
-SOURCES = ("auto", "cloud", "stereo")
 
 #: A frame's scalar features (a row of :data:`~rough_map.features.table.COLUMNS`), its
 #: wavenumbers in rad/m and its patch-mean PSD in m³/rad (None for an invalid frame).
@@ -194,69 +183,7 @@ def _fit(grid: GriddedPatch, ex: Extraction, heights: np.ndarray) -> PatchRoughn
     return rough
 
 
-def traverse_features(
-    traverse: Traverse | PathLike,
-    extraction: Extraction | Mapping[str, Any] | None = None,
-    *,
-    source: str = "auto",
-    min_points: int = 2000,
-    min_fill: float = 0.7,
-    progress: bool = False,
-) -> FeatureTable:
-    """Features of every frame of a traverse.
-
-    Parameters
-    ----------
-    traverse : Traverse or path
-        A loaded traverse, or its folder / file.
-    extraction : Extraction or dict, optional
-        The patch, the IMU tilt compensation, the estimator and its noise floor
-        (:class:`rough_map.patch.Extraction`, or its ``to_dict`` form as a model records
-        it); default the paper's.
-    source : {"auto", "cloud", "stereo"}
-        Where the points come from: the frame's cloud, its stereo pair, or the cloud when
-        there is one ("auto").
-    min_points : int
-        Fewest points in the patch for a valid frame.
-    min_fill : float
-        Smallest fraction of filled cells for a valid frame.
-    progress : bool
-        Progress bar on stderr.
-
-    Raises
-    ------
-    InputError
-        An unknown ``source``, or ``"stereo"`` for a traverse without a calibration.
-    """
-    from tqdm import tqdm
-
-    ex = Extraction.from_dict(extraction)
-    if not isinstance(traverse, Traverse):
-        traverse = load_traverse(traverse)
-    if source not in SOURCES:
-        raise InputError(f"source must be 'auto', 'cloud' or 'stereo', got {source!r}")
-    if source == "stereo" and traverse.spec.calibration is None:
-        raise InputError(f"{traverse.name}: stereo needs a 'calibration' in the traverse")
-    frames = _FrameSource(traverse, ex.patch, source)  # reads nothing until a frame needs it
-    n = len(traverse)
-    rows: list[dict[str, Any]] = []
-    spectra: list[np.ndarray | None] = []
-    omega = None
-    for i in tqdm(range(n), desc=f"features {traverse.name}", unit="frame", disable=not progress):
-        row, om, psd = frames.features(i, ex, min_points=min_points, min_fill=min_fill)
-        if om is not None:
-            omega = om
-        if not row["valid"]:
-            log.info("frame %d invalid: %s", i, row["reason"])
-        rows.append(row)
-        spectra.append(psd)
-    n_invalid = sum(not r["valid"] for r in rows)
-    if n_invalid:
-        log.warning("%s: %d of %d frames have no valid patch", traverse.name, n_invalid, n)
-    return _table(rows, spectra, omega, ex.patch, traverse.name)
-
-
-def _table(
+def feature_table(
     rows: list[dict[str, Any]],
     spectra: list[np.ndarray | None],
     omega: np.ndarray | None,
@@ -286,94 +213,3 @@ def _columns(rows: list[dict[str, Any]]) -> dict[str, np.ndarray]:
         else:
             cols[c] = np.array([float(r.get(c, math.nan)) for r in rows])
     return cols
-
-
-class _FrameSource:
-    """The points of a traverse's frames: their clouds, or clouds reconstructed from their
-    stereo pairs (lazily, so clouds-only runs need no OpenCV)."""
-
-    def __init__(self, traverse: Traverse, spec: PatchSpec, source: str) -> None:
-        self.traverse = traverse
-        self.spec = spec
-        self.source = source
-
-    @property
-    def calib(self) -> StereoCalibration:
-        if self.traverse.spec.calibration is None:
-            raise InputError(f"{self.traverse.name}: stereo needs a 'calibration' in the traverse")
-        return self.traverse.spec.calibration
-
-    def features(self, i: int, ex: Extraction, *, min_points: int, min_fill: float) -> FrameResult:
-        """:func:`frame_features` of frame ``i`` with its time, pose and label, or an
-        invalid row saying why there are no points: no stereo pair, an unreadable file."""
-        frame = self.traverse.frames[i]
-        row, omega, psd = self._features(i, ex, min_points=min_points, min_fill=min_fill)
-        row.update(
-            frame=i,
-            t=frame.t,
-            x=frame.pose.x,
-            y=frame.pose.y,
-            yaw=frame.pose.yaw,
-            label=frame.label or "",
-        )
-        return row, omega, psd
-
-    def _features(self, i: int, ex: Extraction, *, min_points: int, min_fill: float) -> FrameResult:
-        frame = self.traverse.frames[i]
-        use_stereo = self.source == "stereo" or (self.source == "auto" and frame.cloud is None)
-        if use_stereo and (frame.left is None or frame.right is None):
-            # Stereo is often recorded at a lower rate than the clouds: not an error of the run.
-            return {"valid": False, "reason": "no stereo pair", "n_points": 0}, None, None
-        try:
-            points = self.stereo_cloud(i) if use_stereo else self.traverse.load_cloud(i)
-        except FileFormatError as exc:
-            return {"valid": False, "reason": f"unreadable: {exc}", "n_points": 0}, None, None
-        roll = pitch = None
-        if ex.use_imu and frame.imu is not None:
-            roll, pitch = frame.imu.roll, frame.imu.pitch
-        return frame_features(
-            points, ex, roll=roll, pitch=pitch, min_points=min_points, min_fill=min_fill
-        )
-
-    def stereo_cloud(self, i: int) -> np.ndarray:
-        """The cloud of frame ``i``'s stereo pair (vehicle frame, m), over the patch."""
-        frame = self.traverse.frames[i]
-        if frame.left is None or frame.right is None:
-            raise InputError(f"{self.traverse.name}: frame {i} has no stereo pair")
-        left = read_image(self.traverse.resolve(frame.left))
-        right = read_image(self.traverse.resolve(frame.right))
-        return stereo_to_cloud(left, right, self.calib, patch=self.spec)
-
-
-def feature_tables(
-    sources: Sequence[PathLike],
-    extraction: Extraction | Mapping[str, Any] | None = None,
-    *,
-    progress: bool = False,
-) -> list[FeatureTable]:
-    """Feature tables of traverses, computing them or reading them from files.
-
-    Parameters
-    ----------
-    sources : sequence of str or Path
-        Traverse folders or files (features are computed with ``extraction``), or features
-        tables (``.csv``/``.parquet`` written by ``rough-map features``, read as they are).
-    extraction : Extraction or dict, optional
-        The patch and estimator options (:class:`rough_map.patch.Extraction`, or its
-        ``to_dict`` form as a model records it); default the paper's.
-    progress : bool
-        Progress bars on stderr.
-
-    Returns
-    -------
-    list of FeatureTable
-    """
-    ex = Extraction.from_dict(extraction)
-    tables = []
-    for source in sources:
-        path = Path(source)
-        if path.is_file() and path.suffix.lower() in (".csv", ".parquet"):
-            tables.append(read_features(path))
-        else:
-            tables.append(traverse_features(path, ex, progress=progress))
-    return tables

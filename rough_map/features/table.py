@@ -118,6 +118,13 @@ class FeatureTable:
     def __getitem__(self, key: str) -> np.ndarray:
         return self.columns[key]
 
+    def row(self, index: int) -> dict[str, Any]:
+        """The scalar columns of frame ``index`` as Python values."""
+        return {
+            k: v[index].item() if hasattr(v[index], "item") else v[index]
+            for k, v in self.columns.items()
+        }
+
     @property
     def valid(self) -> np.ndarray:
         """Frames with a valid patch (bool per frame)."""

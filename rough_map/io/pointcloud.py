@@ -428,7 +428,14 @@ def _finite_xyz(path: Path, arr: np.ndarray) -> np.ndarray:
         )
     if arr.shape[0] == 0:
         raise FileFormatError(path, "the file holds no points", field="points")
-    xyz = np.array(arr[:, :3], dtype=np.float64)
+    # A fresh (N, 3) float64 array from a reader is kept as it is; anything else is copied.
+    xyz = np.ascontiguousarray(arr[:, :3], dtype=np.float64)
+    # One cheap pass: the sum of all coordinates is NaN or infinite whenever one of them is
+    # (and, rarely, when finite ones overflow); only then is the row mask built.
+    with np.errstate(over="ignore", invalid="ignore"):
+        total = xyz.sum()
+    if np.isfinite(total):
+        return xyz
     finite = np.isfinite(xyz).all(axis=1)
     if not finite.all():
         n_bad = int((~finite).sum())

@@ -22,7 +22,7 @@ import numpy as np
 from rough_map._files import PathLike, atomic_output
 from rough_map.config import FrameSpec, TraverseSpec, load_model
 from rough_map.errors import FileFormatError, SchemaError
-from rough_map.geometry import pose_matrix
+from rough_map.geometry import pose_matrix, transform_points
 from rough_map.io.pointcloud import read_cloud
 
 log = logging.getLogger(__name__)
@@ -132,7 +132,7 @@ class Traverse:
         points = read_cloud(self.cloud_path(index))
         if frame == "world":
             transform = self.pose_matrix(index)
-            points = points @ transform[:3, :3].T + transform[:3, 3]
+            points = transform_points(points, transform[:3, :3], transform[:3, 3])
         elif frame != "vehicle":
             raise ValueError(f"frame must be 'vehicle' or 'world', got {frame!r}")
         return points

@@ -61,6 +61,7 @@ def fuse_patch(
     grow: bool = True,
     margin: float = DEFAULT_MARGIN,
     update: bool = True,
+    count: bool = True,
 ) -> NDArray[np.int64]:
     """Fuse the patch seen from one vehicle pose into the near-field layers, in place.
 
@@ -92,6 +93,9 @@ def fuse_patch(
     update : bool
         Recompute the estimate layers under the patch now (else call
         :func:`update_estimates` once after many patches).
+    count : bool
+        Count the patch in ``count`` (False: a second fusion of a patch counted already,
+        e.g. its smoothed class once the whole path is known).
 
     Returns
     -------
@@ -110,7 +114,8 @@ def fuse_patch(
     if cells.size == 0:
         return cells
     rows, cols = cells[:, 0], cells[:, 1]
-    grid["count"][rows, cols] += 1.0
+    if count:
+        grid["count"][rows, cols] += 1.0
     if math.isfinite(t):
         grid["last_seen"][rows, cols] = np.fmax(grid["last_seen"][rows, cols], t)
     if math.isfinite(R) and R > 0 and math.isfinite(w):
@@ -254,7 +259,14 @@ def _add_vote(grid: GridMap, rows: NDArray, cols: NDArray, level: float) -> None
     k = int(round(level))
     if not (0 <= k < len(names)) or k != level:
         raise InputError(f"level must be an index 0..{len(names) - 1} or NaN, got {level!r}")
-    for name in names:
+    add_vote_layers(grid)
+    grid[f"votes_{names[k]}"][rows, cols] += 1.0
+
+
+def add_vote_layers(grid: GridMap) -> None:
+    """Create the internal layers ``votes_<level>`` (patches per roughness level) that are
+    missing."""
+    for name in grid.attrs["level_names"]:
         if f"votes_{name}" not in grid:
             grid.add_layer(
                 f"votes_{name}",
@@ -263,7 +275,6 @@ def _add_vote(grid: GridMap, rows: NDArray, cols: NDArray, level: float) -> None
                 kind="internal",
                 description=f"patches whose level is {name}",
             )
-    grid[f"votes_{names[k]}"][rows, cols] += 1.0
 
 
 def _window(cells: NDArray[np.int64]) -> tuple[slice, slice]:

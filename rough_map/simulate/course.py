@@ -18,7 +18,16 @@ Each frame gets
 
 The true world is saved as ``world_truth.npz`` (heights, class map, spacing, origin): the
 heights as int16 steps of at most 10 um with a scale and an offset, the class map deflated
-(:func:`rough_map.io.truth.save_world`, :func:`rough_map.io.truth.load_world`).
+(:mod:`rough_map.io.truth`). A course up to 50 m
+(:data:`~rough_map.simulate.world.WHOLE_LENGTH`) is built whole and its truth written whole
+(:func:`~rough_map.io.truth.save_world`), exactly as before long courses were tiled. A
+longer one is built in 6 m tiles (:class:`~rough_map.simulate.world.WorldTiles`) as the
+rover drives on: the frames are made in runs of :data:`RUN_LENGTH` m, each on a window of
+the world that holds what its wheels, range sensor and cameras see, and the finished
+columns go to a truth file of the tiled layout
+(:class:`~rough_map.io.truth.TiledWorldWriter`, read a tile at a time by
+:class:`~rough_map.io.truth.TiledWorld`). Memory then holds a few tiles: about 0.6 GB
+without images and 0.95 GB with them, whatever the length.
 """
 
 from __future__ import annotations
@@ -37,16 +46,25 @@ from rough_map.config import StereoCalibration, TraverseSpec
 from rough_map.errors import InputError, RoughMapError
 from rough_map.geometry import rotation_matrix
 from rough_map.io.traverse import find_traverse_file, save_traverse
-from rough_map.io.truth import TRUTH_FILE, save_world
-from rough_map.simulate.render import render_stereo
+from rough_map.io.truth import TRUTH_FILE, TiledWorldWriter, save_world
+from rough_map.simulate.render import render_stereo, view_bounds
 from rough_map.simulate.textures import TextureSet
 from rough_map.simulate.world import (
+    CLASS_NAMES,
     COURSES,
+    TILE_LENGTH,
+    WHOLE_LENGTH,
     Defect,
+    RoverGeometry,
     Segment,
+    WorldTiles,
+    attitude,
+    attitude_reach,
     build_world,
     course_layout,
     drive,
+    drive_track,
+    is_tiled,
 )
 from rough_map.types import HeightField
 
@@ -180,6 +198,8 @@ def simulate(
     width: float = 4.0,
     compress: bool = False,
     progress: bool = False,
+    whole_length: float = WHOLE_LENGTH,
+    tile_length: float = TILE_LENGTH,
 ) -> Path:
     """Simulate a traverse of ``course`` and write it to ``out_dir``.
 
@@ -213,6 +233,14 @@ def simulate(
         smaller) instead of float32 ``.npy``.
     progress : bool
         Show a progress bar on stderr.
+    whole_length : float
+        A course up to this long (m) is built in one piece (:func:`build_world`); a longer
+        one tile by tile (:class:`~rough_map.simulate.world.WorldTiles`), read in windows
+        along the drive, and its truth written in tiles
+        (:class:`~rough_map.io.truth.TiledWorldWriter`), so that memory does not grow
+        with the length.
+    tile_length : float
+        Length in m of the tiles of a longer course.
 
     Returns
     -------
@@ -225,28 +253,49 @@ def simulate(
         raise InputError(f"unknown course {course!r}; expected one of {COURSES}")
     sensor = sensor or SensorSpec()
     _check_crop(sensor.cloud_half_extent)
+    segments, defects = course_layout(course, length, seed)
+    tiles = None
+    if is_tiled(segments, whole_length):  # checks the tiles' arguments before writing
+        tiles = WorldTiles(
+            segments,
+            defects,
+            spacing=world_spacing,
+            seed=seed,
+            width=width,
+            tile_length=tile_length,
+        )
     out = _new_folder(Path(out_dir))
     rng = np.random.default_rng(seed)
-    segments, defects = course_layout(course, length, seed)
-    world = build_world(segments, defects, spacing=world_spacing, seed=seed, width=width)
-    save_world(world, out / TRUTH_FILE)
-    poses = drive(
-        world,
-        segments[0].start,
-        segments[-1].end - sensor.ahead - 0.5,
-        speed=speed,
-        rate=rate,
-        seed=seed,
-    )
-    camera = _Camera(world, seed, out) if images else None
-    frames = []
-    bar = tqdm(total=len(poses), desc=f"simulate {course}", unit="frame", disable=not progress)
-    for i, pose in enumerate(poses):
-        frame = _record_frame(out, i, pose, world, sensor, rng, compress)
-        if camera is not None and i % max(1, int(image_every)) == 0:
-            frame.update(camera.record(i, np.asarray(pose[1:])))
-        frames.append(frame)
-        bar.update()
+    camera = _Camera(seed, out) if images else None
+    every = max(1, int(image_every))
+    start, end = segments[0].start, segments[-1].end - sensor.ahead - 0.5
+
+    def progress_bar(total: int) -> Any:
+        return tqdm(total=total, desc=f"simulate {course}", unit="frame", disable=not progress)
+
+    if tiles is None:
+        world = build_world(segments, defects, spacing=world_spacing, seed=seed, width=width)
+        save_world(world, out / TRUTH_FILE)
+        poses = drive(world, start, end, speed=speed, rate=rate, seed=seed)
+        if camera is not None:
+            camera.look_at(world)
+        bar = progress_bar(len(poses))
+        frames = []
+        for i, pose in enumerate(poses):
+            frame = _record_frame(out, i, pose, world, sensor, rng, compress)
+            if camera is not None and i % every == 0:
+                frame.update(camera.record(i, np.asarray(pose[1:])))
+            frames.append(frame)
+            bar.update()
+    else:
+        track = drive_track(start, end, speed=speed, rate=rate, seed=seed)
+        bar = progress_bar(len(track[0]))
+        with TiledWorldWriter(
+            out / TRUTH_FILE, tiles.shape, world_spacing, tiles.origin, CLASS_NAMES
+        ) as writer:
+            tiles.sink = writer.append
+            frames = _drive_tiles(out, tiles, track, sensor, rng, camera, every, compress, bar)
+            tiles.finish()
     bar.close()
     settings = {
         "course": course,
@@ -261,6 +310,75 @@ def simulate(
     path = save_traverse(spec, out)
     log.info("wrote %d frames of the %s course to %s", len(frames), course, out)
     return path
+
+
+#: Frames are simulated in runs along this many m of the drive, each on one window of a
+#: tiled world (the window reaches about 7 m further for the cameras).
+RUN_LENGTH = 4.0
+
+
+def _drive_tiles(
+    out: Path,
+    tiles: WorldTiles,
+    track: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    sensor: SensorSpec,
+    rng: np.random.Generator,
+    camera: _Camera | None,
+    every: int,
+    compress: bool,
+    bar: Any,
+) -> list[dict[str, Any]]:
+    """The frames of a drive over a tiled world, in runs of :data:`RUN_LENGTH` m: each run
+    reads the window of the world its wheels, sensor and cameras see, then releases what
+    lies behind. The same random streams as on a world built whole, frame after frame."""
+    t, x, y, yaw = track
+    rover = RoverGeometry()
+    y_reach = float(np.abs(y).max(initial=0.0))
+    behind = attitude_reach(rover, tiles.spacing) + 2 * tiles.spacing
+    align = _Camera.step(tiles.spacing)
+    frames: list[dict[str, Any]] = []
+    i = 0
+    while i < len(x):
+        j = max(i + 1, int(np.searchsorted(x, x[i] + RUN_LENGTH)))
+        run = slice(i, j)
+        ground = tiles.window(x[i] - behind, x[j - 1] + behind, align=align)
+        z, roll, pitch = attitude(ground, x[run], y[run], yaw[run], rover=rover, y_reach=y_reach)
+        del ground
+        poses = np.column_stack([t[run], x[run], y[run], z, roll, pitch, yaw[run]])
+        rendered = {k for k in range(i, j) if camera is not None and k % every == 0}
+        lo, hi = _seen(poses[:, 1:], [k - i for k in sorted(rendered)], sensor, camera)
+        world = tiles.window(min(lo, x[i] - behind), max(hi, x[j - 1] + behind), align=align)
+        if camera is not None:
+            camera.look_at(world)
+        for k, pose in zip(range(i, j), poses, strict=True):
+            frame = _record_frame(out, k, pose, world, sensor, rng, compress)
+            if camera is not None and k in rendered:
+                frame.update(camera.record(k, np.asarray(pose[1:])))
+            frames.append(frame)
+            bar.update()
+        del world
+        if camera is not None:
+            camera.view = None
+        if j < len(x):
+            tiles.release(x[j] - behind - 1.0)
+        i = j
+    return frames
+
+
+def _seen(
+    poses: np.ndarray, rendered: list[int], sensor: SensorSpec, camera: _Camera | None
+) -> tuple[float, float]:
+    """World x range (m) that the range sensor of every pose ``(x, y, z, roll, pitch,
+    yaw)`` and the cameras of the poses ``rendered`` (indices) see, with a margin."""
+    x, yaw = poses[:, 0], poses[:, 5]
+    reach = sensor.half_extent * (np.abs(np.cos(yaw)) + np.abs(np.sin(yaw)))
+    lo = float(np.min(x + sensor.ahead * np.cos(yaw) - reach))
+    hi = float(np.max(x + sensor.ahead * np.cos(yaw) + reach))
+    if camera is not None:
+        for k in rendered:
+            x0, x1, _, _ = view_bounds(poses[k], camera.calib)
+            lo, hi = min(lo, x0), max(hi, x1)
+    return lo - 0.05, hi + 0.05
 
 
 def _check_crop(crop: float | None) -> None:
@@ -325,12 +443,23 @@ class _Camera:
 
     The renderer gets a 4 mm copy of the world (it sees no finer detail at 1280x960)."""
 
-    def __init__(self, world: HeightField, seed: int, out: Path) -> None:
+    def __init__(self, seed: int, out: Path) -> None:
         self.calib = StereoCalibration.xb3_default()
         self.textures = TextureSet(seed=seed)
         self.seed = seed
         self.out = out
-        step = max(1, int(round(0.004 / world.spacing)))
+        self.view: HeightField | None = None
+        (out / "left").mkdir(exist_ok=True)
+        (out / "right").mkdir(exist_ok=True)
+
+    @staticmethod
+    def step(spacing: float) -> int:
+        """Every how many cells of a world of ``spacing`` m the renderer's copy keeps."""
+        return max(1, int(round(0.004 / spacing)))
+
+    def look_at(self, world: HeightField) -> None:
+        """Render ``world`` (or a window of it holding the views) from now on."""
+        step = self.step(world.spacing)
         classes = world.classes[::step, ::step] if world.classes is not None else None
         self.view = HeightField(
             world.heights[::step, ::step],
@@ -339,14 +468,13 @@ class _Camera:
             classes,
             world.class_names,
         )
-        (out / "left").mkdir(exist_ok=True)
-        (out / "right").mkdir(exist_ok=True)
 
     def record(self, i: int, pose6: np.ndarray) -> dict[str, str]:
         """Render and write frame ``i``'s pair from ``(x, y, z, roll, pitch, yaw)``; the
         traverse entries ``left`` and ``right``."""
         import cv2
 
+        assert self.view is not None, "look_at a world first"
         left, right, _ = render_stereo(
             self.view, pose6, self.calib, self.textures, seed=self.seed * 100003 + i, color=True
         )

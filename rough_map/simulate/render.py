@@ -260,6 +260,17 @@ def render_stereo(
     return images[0], images[1], depth_left
 
 
+def view_bounds(
+    pose: Pose | Sequence[float] | np.ndarray,
+    calib: StereoCalibration,
+    region: tuple[float, float, float, float] | None = None,
+) -> tuple[float, float, float, float]:
+    """World ``(x_min, x_max, y_min, y_max)`` in m of the ground :func:`render_stereo`
+    triangulates from ``pose`` (same ``pose``, ``calib`` and ``region``): a renderer given
+    a piece of the world that covers it draws what the whole world gives."""
+    return _world_bounds(region or _default_region(calib), pose_matrix(pose))
+
+
 def _world_bounds(
     region: tuple[float, float, float, float], world_vehicle: np.ndarray
 ) -> tuple[float, float, float, float]:

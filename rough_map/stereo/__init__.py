@@ -29,15 +29,17 @@ The pipeline of the paper, step by step:
 Why the ground prior, and why the coarse pass aligns the images on its plane: see
 :mod:`rough_map.stereo.matching` and :mod:`rough_map.stereo.coarse`.
 
-On the XB3-like rig's 1280x960 pair of the benchmark (rough compact soil, 16 residual
-disparities) that is 85-100 ms of CPU per frame on a busy 2-core machine, about 2/3 of it
-SGM (which runs on both cores), against 220-320 ms for the former single pass over +-0.15 m
-around ``z = 0`` and about 1 s for the full frame (``benchmarks/bench_stereo.py``). Frames
-of the simulator's courses, whose relief needs 32 disparities and whose patch looks bigger
-when the vehicle pitches down, take 100-200 ms (the single pass: 240-340 ms). The coarse pass
-also makes the patch path follow ground that is not at the vehicle's ``z = 0``: on the
-ploughed course the vehicle pitches by up to 13 degrees and the ground under the patch lies
-up to 0.3 m off that plane, where the single pass lost 10-40 % of the patch.
+On one thread (as in each worker process of a frame-parallel run), ``stereo_to_cloud`` of
+the XB3-like rig's 1280x960 pairs takes 45-55 ms of CPU per frame: coarse pass 9-10 ms,
+full-resolution SGM (with the warp of the right band) 27-35 ms, points 2 ms, outlier filter
+7 ms; against about 100 ms for the former single pass over +-0.15 m around ``z = 0`` and
+0.5 s for the full frame. Decoding the pair's colour PNG files (OpenCV, libpng) adds
+38-40 ms and ``frame_features`` 7 ms: 95-100 ms per frame in all, 20 frames/s on two cores
+(``benchmarks/bench_stereo.py``, which times the decoding alone and plain SGBM on the full
+image in the same run). The coarse pass also makes the patch path follow ground that is not
+at the vehicle's ``z = 0``: on the ploughed course the vehicle pitches by up to 13 degrees
+and the ground under the patch lies up to 0.3 m off that plane, where the single pass lost
+10-40 % of the patch.
 
 Limits: the stereo error adds, on rendered ground, 2e-10 to 2e-9 m^3/rad at 112 rad/m and
 1e-10 to 3e-10 m^3/rad at 224 rad/m. That dominates the high wavenumbers of very smooth

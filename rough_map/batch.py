@@ -1,0 +1,401 @@
+"""Many traverses, one map: each mapped on its own, in parallel or on a Dask cluster, then fused.
+
+:func:`run_batch` maps every traverse as ``rough-map map`` does
+(:func:`rough_map.workflow.analyse` and :func:`~rough_map.workflow.write_outputs`) into
+``OUT/<name>/``, then adds their fusion sums (``map_state.npz``) into one map of all of
+them (:func:`fuse_states`: the same Bayesian fusion, as if all their frames had been fused
+together) and writes it at the top of ``OUT``.
+
+Where the work runs: in this process, in ``n_jobs`` local processes (joblib), or on the
+workers of a Dask cluster (``scheduler="tcp://host:8786"``, which needs
+``rough-map[cluster]``). A worker reads the traverse from the path it is given (so workers
+need the same view of the data as the client, e.g. a shared file system), maps it in a
+temporary folder of its own and sends the files back; the client writes them. The outputs
+hold no wall-clock time and no absolute path, so they are the same bytes wherever and in
+whatever order the work ran.
+
+A batch is resumable: a traverse whose folder holds a ``batch.json`` with the same
+fingerprint (the traverse file's and the model's SHA-256, the settings, the rough_map
+version) is not mapped again. Each traverse's folder is written as a set: into a hidden
+temporary folder, renamed into place only when complete, so a killed run leaves either the
+old folder or the new one, never half of one.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import shutil
+import tempfile
+import uuid
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+from rough_map import __version__
+from rough_map._files import PathLike, atomic_output
+from rough_map.errors import InputError
+from rough_map.export import export_map
+from rough_map.io.traverse import find_traverse_file, load_traverse
+from rough_map.map.tiles import TiledMap
+from rough_map.resources import model_base
+from rough_map.workflow import analyse, summary, write_outputs
+
+log = logging.getLogger(__name__)
+
+__all__ = ["BatchJob", "BatchResult", "fuse_states", "map_traverse_files", "run_batch"]
+
+#: Name of the file that marks a traverse's folder (or the batch's) as complete.
+MARKER = "batch.json"
+
+
+@dataclass(frozen=True)
+class BatchJob:
+    """One traverse of a batch: what to map and how (sent to a worker as it is).
+
+    Attributes
+    ----------
+    traverse : str
+        The traverse folder or file, as the workers see it.
+    name : str
+        Its name (``OUT/<name>/``).
+    model : str
+        Model name or file.
+    resolution : float
+        Map cell size, m.
+    near_far : str or bool
+        As :func:`rough_map.workflow.analyse`'s.
+    png : bool
+        Draw the layer PNGs.
+    n_jobs : int
+        Processes for the frames of this traverse.
+    """
+
+    traverse: str
+    name: str
+    model: str
+    resolution: float
+    near_far: str | bool
+    png: bool
+    n_jobs: int = 1
+
+
+@dataclass
+class BatchResult:
+    """What :func:`run_batch` did.
+
+    Attributes
+    ----------
+    mapped, skipped : list of str
+        Traverses mapped now, and those already done (resumed).
+    outputs : dict of str to Path
+        The fused map's files.
+    summaries : dict of str to dict
+        Each traverse's figures (:func:`rough_map.workflow.summary`).
+    """
+
+    mapped: list[str]
+    skipped: list[str]
+    outputs: dict[str, Path]
+    summaries: dict[str, dict[str, Any]]
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _model_file(model: str) -> Path:
+    return model_base() if model == "default" else Path(model)
+
+
+def fingerprint(job: BatchJob) -> dict[str, Any]:
+    """What decides a traverse's outputs: the traverse file's and the model's SHA-256, the
+    settings and the rough_map version (no path, no time)."""
+    model = _model_file(job.model)
+    model_file = model if model.suffix == ".skops" else model.with_suffix(".skops")
+    return {
+        "traverse_sha256": _sha256(find_traverse_file(job.traverse)),
+        "model_sha256": _sha256(model_file) if model_file.is_file() else job.model,
+        "resolution_m": job.resolution,
+        "near_far": job.near_far,
+        "png": job.png,
+        "rough_map_version": __version__,
+    }
+
+
+def map_traverse_files(job: BatchJob) -> dict[str, bytes]:
+    """Map one traverse in a temporary folder; its files by name (run on a worker).
+
+    The marker ``batch.json`` (the fingerprint and the traverse's figures) is among them.
+    """
+    tmp = Path(tempfile.mkdtemp(prefix="rough_map_batch_"))
+    try:
+        result = analyse(
+            job.traverse,
+            _model_file(job.model),
+            resolution=job.resolution,
+            near_far=job.near_far,
+            n_jobs=job.n_jobs,
+        )
+        write_outputs(result, tmp, png=job.png)
+        marker = {
+            "traverse": job.name,
+            "fingerprint": fingerprint(job),
+            "summary": summary(result, job.resolution),
+        }
+        (tmp / MARKER).write_text(json.dumps(marker, indent=2, sort_keys=True) + "\n")
+        files = {}
+        for path in sorted(tmp.rglob("*")):
+            if path.is_file():
+                files[path.relative_to(tmp).as_posix()] = path.read_bytes()
+        return files
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _write_set(folder: Path, files: dict[str, bytes]) -> None:
+    """Write a traverse's files as a set: a hidden folder renamed into place when done."""
+    part = folder.with_name(f".{folder.name}.{uuid.uuid4().hex[:8]}.partial")
+    try:
+        for rel, data in files.items():
+            target = part / rel
+            if ".." in Path(rel).parts or Path(rel).is_absolute():
+                raise InputError(f"refusing to write {rel!r} outside {folder}")
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_bytes(data)
+        old = None
+        if folder.exists():
+            old = folder.with_name(f".{folder.name}.{uuid.uuid4().hex[:8]}.old")
+            os.replace(folder, old)
+        os.replace(part, folder)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    finally:
+        shutil.rmtree(part, ignore_errors=True)
+
+
+def _clean_leftovers(out: Path) -> None:
+    """Remove what a killed run left: hidden ``.<name>.*.partial``/``.old`` folders and
+    ``.fused.*`` ones (one batch writes to a folder at a time)."""
+    for path in out.glob(".*"):
+        if path.is_dir() and (
+            path.name.endswith((".partial", ".old")) or path.name.startswith(".fused.")
+        ):
+            log.info("removing %s, left by an interrupted run", path.name)
+            shutil.rmtree(path, ignore_errors=True)
+
+
+def _done(folder: Path, job: BatchJob) -> bool:
+    marker = folder / MARKER
+    if not (marker.is_file() and (folder / "map_state.npz").is_file()):
+        return False
+    try:
+        saved = json.loads(marker.read_text())
+    except (OSError, ValueError):
+        return False
+    return bool(saved.get("fingerprint") == fingerprint(job))
+
+
+def _jobs(
+    traverses: Sequence[PathLike], model: str, resolution: float, near_far: str | bool, png: bool
+) -> list[BatchJob]:
+    jobs: list[BatchJob] = []
+    seen: dict[str, str] = {}
+    for t in traverses:
+        name = load_traverse(t).name
+        if name in seen:
+            raise InputError(
+                f"two traverses are named {name!r} ({seen[name]} and {t}); "
+                "their outputs would share OUT/{name}/: rename one in its traverse file"
+            )
+        if not name or name in (".", "..") or "/" in name or "\\" in name:
+            raise InputError(f"{t}: traverse name {name!r} cannot name a folder")
+        seen[name] = str(t)
+        jobs.append(BatchJob(str(t), name, model, resolution, near_far, png))
+    return jobs
+
+
+def run_batch(
+    traverses: Sequence[PathLike],
+    out_dir: PathLike,
+    *,
+    model: str = "default",
+    resolution: float = 0.1,
+    near_far: str | bool = "auto",
+    png: bool = True,
+    n_jobs: int = 1,
+    scheduler: str | None = None,
+    tls: tuple[str, str, str] | None = None,
+    progress: bool = False,
+) -> BatchResult:
+    """Map each traverse into ``out_dir/<name>/`` and fuse them all into ``out_dir``.
+
+    Parameters
+    ----------
+    traverses : sequence of path
+        Traverse folders or files (names must differ).
+    out_dir : path
+        Output folder.
+    model : str
+        Model name (``"default"``) or file.
+    resolution : float
+        Map cell size, m.
+    near_far : {"auto", True, False}
+        Near-to-far from the stereo images.
+    png : bool
+        Draw the PNGs.
+    n_jobs : int
+        Local processes (joblib): across traverses when there are enough, else across the
+        frames of each.
+    scheduler : str, optional
+        Address of a Dask scheduler (``tls://host:8786``, or ``tcp://`` on a trusted
+        private network): the traverses are mapped on its workers.
+    tls : (ca_file, cert, key), optional
+        PEM files for a ``tls://`` scheduler (mutual TLS, encryption required); default
+        dask's configuration (``distributed.comm.tls.*``).
+    progress : bool
+        Progress bar on stderr.
+
+    Returns
+    -------
+    BatchResult
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    jobs = _jobs(traverses, model, resolution, near_far, png)
+    _clean_leftovers(out)
+    todo = [j for j in jobs if not _done(out / j.name, j)]
+    skipped = [j.name for j in jobs if j not in todo]
+    if skipped:
+        log.info("already mapped, not redone: %s", ", ".join(skipped))
+    for name, files in _execute(todo, n_jobs, scheduler, tls, progress):
+        _write_set(out / name, files)
+        log.info("mapped %s", name)
+    summaries = {j.name: json.loads((out / j.name / MARKER).read_text())["summary"] for j in jobs}
+    fused = fuse_states([out / j.name / "map_state.npz" for j in jobs])
+    fused.attrs["traverses"] = [j.name for j in jobs]
+    outputs = _write_fused(fused, out, png, [j.name for j in jobs])
+    return BatchResult([j.name for j in todo], skipped, outputs, summaries)
+
+
+def fuse_states(paths: Sequence[PathLike], *, margin: float = 1.0) -> Any:
+    """One map from the saved states of several traverses (``map_state.npz``): their sums
+    added tile by tile (in bounded memory), then the estimates over all their patches plus
+    ``margin`` m."""
+    tiles = TiledMap.open_saved(paths[0])
+    try:
+        for path in paths:
+            tiles.add_saved(path)
+        return tiles.merged(margin=margin, attrs={"name": "batch"})
+    finally:
+        tiles.close()
+
+
+def _execute(
+    todo: list[BatchJob],
+    n_jobs: int,
+    scheduler: str | None,
+    tls: tuple[str, str, str] | None,
+    progress: bool,
+) -> Iterator[tuple[str, dict[str, bytes]]]:
+    """The files of each job, as they are done, wherever they run."""
+    from tqdm import tqdm
+
+    bar = tqdm(total=len(todo), desc="traverses", unit="traverse", disable=not progress)
+    try:
+        if scheduler is not None:
+            yield from _on_cluster(todo, scheduler, tls, bar)
+        elif n_jobs == 1 or len(todo) < max(n_jobs, 2):
+            for job in todo:
+                yield job.name, map_traverse_files(replace(job, n_jobs=n_jobs))
+                bar.update()
+        else:
+            from joblib import Parallel, delayed
+
+            parallel = Parallel(n_jobs=n_jobs, return_as="generator_unordered")
+            for name, files in parallel(delayed(_named)(job) for job in todo):
+                yield name, files
+                bar.update()
+    finally:
+        bar.close()
+
+
+def _named(job: BatchJob) -> tuple[str, dict[str, bytes]]:
+    return job.name, map_traverse_files(job)
+
+
+def _on_cluster(
+    todo: list[BatchJob], scheduler: str, tls: tuple[str, str, str] | None, bar: Any
+) -> Iterator[tuple[str, dict[str, bytes]]]:
+    try:
+        from distributed import Client, Security, as_completed
+    except ImportError:
+        raise InputError(
+            "--scheduler needs dask.distributed: pip install 'rough-map[cluster]'"
+        ) from None
+    security = None
+    if tls is not None:
+        for path in tls:
+            if not Path(path).is_file():
+                raise InputError(f"TLS file {path} does not exist")
+        security = Security(
+            tls_ca_file=tls[0], tls_client_cert=tls[1], tls_client_key=tls[2],
+            require_encryption=True,
+        )  # fmt: skip
+    if security is None and not scheduler.startswith("tls://"):
+        log.warning(
+            "%s is not encrypted: keep the scheduler on a private network, or use tls://",
+            scheduler,
+        )
+    try:
+        client = Client(scheduler, timeout="20s", security=security)
+    except (OSError, TimeoutError) as exc:
+        raise InputError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
+    except TypeError as exc:  # a tls:// address without TLS files
+        raise InputError(
+            f"{scheduler} needs TLS: give --tls CA CERT KEY (or dask's "
+            f"distributed.comm.tls configuration): {exc}"
+        ) from None
+    with client:
+        futures = {
+            client.submit(
+                _named, job, pure=False, key=f"map-{job.name}-{uuid.uuid4().hex[:8]}"
+            ): job
+            for job in todo
+        }
+        for future in as_completed(futures):
+            name, files = future.result()
+            yield name, files
+            bar.update()
+
+
+def _write_fused(fused: Any, out: Path, png: bool, names: list[str]) -> dict[str, Path]:
+    """The fused map's files at the top of ``out``, written in a temporary folder first and
+    moved in one by one; ``batch.json`` last."""
+    tmp = Path(tempfile.mkdtemp(prefix=".fused.", dir=out))
+    try:
+        written = export_map(fused, tmp, name="map", png=png)
+        outputs = {}
+        for key, path in written.items():
+            target = out / path.name
+            os.replace(path, target)
+            outputs[key] = target
+        marker = {
+            "traverses": names,
+            "map_shape": list(fused.shape),
+            "resolution_m": fused.resolution,
+            "rough_map_version": __version__,
+        }
+        with atomic_output(out / MARKER) as t:
+            t.write_text(json.dumps(marker, indent=2, sort_keys=True) + "\n")
+        outputs["batch"] = out / MARKER
+        return outputs
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)

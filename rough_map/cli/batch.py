@@ -1,0 +1,114 @@
+"""``rough-map batch T1 T2 ... --out DIR``: many traverses mapped and fused into one map."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from rough_map.cli._common import (
+    add_jobs_arg,
+    emit_json,
+    existing_path,
+    positive_float,
+    status,
+    table,
+)
+from rough_map.cli.map import NEAR_FAR
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "batch",
+        help="map many traverses (in parallel or on a Dask cluster) and fuse them into one map",
+        description=(
+            "Map each traverse as `rough-map map` does into DIR/<name>/ (GeoTIFFs, PNGs, "
+            "features.csv, labels.csv, map_state.npz), then add all their fusion sums into "
+            "one map in one CRS (the same Bayesian fusion) written at DIR's top level: "
+            "DIR/map.tif, DIR/map_class.tif, DIR/map_<layer>.png and DIR/batch.json. "
+            "Resumable: a traverse already mapped with the same inputs and settings is not "
+            "redone, and each traverse's folder appears only when complete. With "
+            "--scheduler the traverses are mapped on the workers of a Dask cluster "
+            "(pip install 'rough-map[cluster]'); workers must see the traverses at the "
+            "paths given here. The outputs are the same bytes for any -j and on a cluster."
+        ),
+    )
+    p.add_argument(
+        "traverses", nargs="+", type=existing_path, metavar="TRAVERSE", help="traverse folders"
+    )
+    p.add_argument(
+        "--out", type=Path, required=True, metavar="DIR", help="output folder (created if needed)"
+    )
+    p.add_argument(
+        "--model",
+        default="default",
+        metavar="MODEL",
+        help="terrain model: 'default' (shipped) or a .skops file (default: default)",
+    )
+    p.add_argument(
+        "--resolution",
+        type=positive_float("m"),
+        default=0.1,
+        metavar="M",
+        help="map cell size in m (default 0.1)",
+    )
+    p.add_argument(
+        "--near-far",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="near-to-far from the stereo images (auto: when there are images)",
+    )
+    p.add_argument("--no-png", action="store_true", help="skip the PNGs")
+    p.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="Dask scheduler to run on, e.g. tcp://10.0.0.5:8786 or tls://... "
+        "(keep it on a private network; see the README)",
+    )
+    p.add_argument(
+        "--tls",
+        nargs=3,
+        metavar=("CA", "CERT", "KEY"),
+        help="PEM files for a tls:// scheduler: the CA, this client's certificate and key",
+    )
+    add_jobs_arg(p)
+    p.add_argument("--json", action="store_true", help="what was done, as JSON on stdout")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from rough_map.batch import run_batch
+
+    result = run_batch(
+        args.traverses,
+        args.out,
+        model=args.model,
+        resolution=args.resolution,
+        near_far=NEAR_FAR[args.near_far],
+        png=not args.no_png,
+        n_jobs=args.jobs,
+        scheduler=args.scheduler,
+        tls=tuple(args.tls) if args.tls else None,
+        progress=args.progress,
+    )
+    if args.json:
+        emit_json(
+            {
+                "mapped": result.mapped,
+                "skipped": result.skipped,
+                "outputs": {k: str(v) for k, v in result.outputs.items()},
+                "traverses": result.summaries,
+            }
+        )
+        return 0
+    rows = [
+        [
+            name,
+            "mapped" if name in result.mapped else "done before",
+            str(s["frames"]),
+            str(s["valid"]),
+        ]
+        for name, s in result.summaries.items()
+    ]
+    print(table(rows, ["traverse", "this run", "frames", "valid"]))
+    status(args, f"fused map of {len(rows)} traverses in {args.out}")
+    return 0

@@ -1,0 +1,562 @@
+"""One pass over a traverse's frames: each cloud (or stereo pair) is read once.
+
+For every frame the pass gives what the rest of rough_map needs from the raw data:
+
+* its feature row and patch spectrum (:func:`rough_map.features.frame_features`);
+* optionally a :class:`HeightSample`: the world heights of its points, summed per cell of a
+  lattice of the map's cell size, from which a map's elevation layer is built.
+
+Nothing reads a cloud again after this pass. :func:`iter_frames` sends the frames to worker
+processes (joblib) in chunks and yields the results in frame order, so what follows does not
+depend on the number of workers: ``n_jobs=2`` gives the same bytes as ``n_jobs=1``. Each
+worker runs single-threaded (BLAS pinned with threadpoolctl, OpenCV told so), since the
+processes already use the cores and the per-frame matrices are small.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from rough_map._files import PathLike
+from rough_map.config import StereoCalibration
+from rough_map.errors import FileFormatError, InputError
+from rough_map.features.extract import FrameResult, feature_table, frame_features
+from rough_map.features.files import read_features
+from rough_map.features.table import FeatureTable
+from rough_map.geometry import rotation_matrix, transform_columns
+from rough_map.io.pointcloud import read_cloud
+from rough_map.io.traverse import Traverse, load_traverse
+from rough_map.patch import Extraction
+from rough_map.stereo import read_image, stereo_to_cloud
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "SOURCES",
+    "FeatureCollector",
+    "FrameJob",
+    "FrameOutput",
+    "FramePass",
+    "HeightSample",
+    "check_jobs",
+    "feature_tables",
+    "frame_jobs",
+    "iter_frames",
+    "process_frame",
+    "process_frames",
+    "process_points",
+    "traverse_features",
+    "traverse_pass",
+]
+
+#: Where the points of a frame come from: the frame's cloud, its stereo pair, or the cloud
+#: when there is one ("auto").
+SOURCES = ("auto", "cloud", "stereo")
+
+#: Frames per task sent to a worker: enough to make the hand-over cheap, few enough that
+#: results stream back steadily and memory stays flat.
+CHUNK = 32
+
+
+@dataclass(frozen=True)
+class FrameJob:
+    """What one frame's processing needs, and nothing else (cheap to send to a worker).
+
+    Attributes
+    ----------
+    index : int
+        Frame index in the traverse.
+    t : float
+        Time, s.
+    pose : tuple of 6 float
+        ``(x, y, z, roll, pitch, yaw)`` of the vehicle in the world, m and rad.
+    label : str
+        Terrain class name ("" unlabelled).
+    cloud, left, right : Path or None
+        The frame's files.
+    imu : tuple of 2 float or None
+        IMU roll and pitch, rad.
+    """
+
+    index: int
+    t: float
+    pose: tuple[float, float, float, float, float, float]
+    label: str = ""
+    cloud: Path | None = None
+    left: Path | None = None
+    right: Path | None = None
+    imu: tuple[float, float] | None = None
+
+
+def frame_jobs(traverse: Traverse) -> list[FrameJob]:
+    """The :class:`FrameJob` of every frame of ``traverse``, with its paths resolved."""
+    jobs = []
+    for i, f in enumerate(traverse.frames):
+        p = f.pose
+        jobs.append(
+            FrameJob(
+                index=i,
+                t=f.t,
+                pose=(p.x, p.y, p.z, p.roll, p.pitch, p.yaw),
+                label=f.label or "",
+                cloud=None if f.cloud is None else traverse.resolve(f.cloud),
+                left=None if f.left is None else traverse.resolve(f.left),
+                right=None if f.right is None else traverse.resolve(f.right),
+                imu=None if f.imu is None else (f.imu.roll, f.imu.pitch),
+            )
+        )
+    return jobs
+
+
+@dataclass(frozen=True)
+class HeightSample:
+    """World heights of a frame's points, summed per cell of a lattice.
+
+    Cell ``(row, col)`` covers x in ``[col * resolution, (col + 1) * resolution)`` and y in
+    ``[row * resolution, (row + 1) * resolution)`` (m, world frame): the lattice every
+    :class:`~rough_map.map.grid_geometry.GridGeometry` of that cell size is aligned on.
+
+    Attributes
+    ----------
+    resolution : float
+        Cell size, m.
+    rows, cols : ndarray of int64, shape (M,)
+        Lattice cells holding points.
+    sums : ndarray, shape (M,)
+        Sum of the heights (world z, m) of the points in each cell.
+    counts : ndarray, shape (M,)
+        Number of points in each cell.
+    """
+
+    resolution: float
+    rows: NDArray[np.int64]
+    cols: NDArray[np.int64]
+    sums: NDArray[np.float64]
+    counts: NDArray[np.float64]
+
+    def __len__(self) -> int:
+        return int(self.rows.size)
+
+
+@dataclass(frozen=True)
+class FrameOutput:
+    """The result of one frame: its feature row, spectrum and height sample.
+
+    Attributes
+    ----------
+    index : int
+        Frame index.
+    row : dict
+        Scalar feature columns, with the frame's ``frame``, ``t``, ``x``, ``y``, ``yaw`` and
+        ``label`` (see :func:`rough_map.features.frame_features`).
+    omega : ndarray or None
+        Wavenumbers of the spectrum, rad/m (None for an invalid frame).
+    psd : ndarray or None
+        Patch-mean PSD, m³/rad (None for an invalid frame).
+    heights : HeightSample or None
+        The frame's world heights (None when not asked for, or without points).
+    """
+
+    index: int
+    row: dict[str, Any]
+    omega: NDArray[np.float64] | None
+    psd: NDArray[np.float64] | None
+    heights: HeightSample | None = None
+
+
+@dataclass(frozen=True)
+class FramePass:
+    """How the frames are processed.
+
+    Attributes
+    ----------
+    extraction : Extraction
+        The patch, the IMU tilt compensation and the estimator.
+    source : {"auto", "cloud", "stereo"}
+        Where the points come from (:data:`SOURCES`).
+    calibration : StereoCalibration or None
+        The rig, for stereo frames.
+    min_points : int
+        Fewest points in the patch for a valid frame.
+    min_fill : float
+        Smallest fraction of filled cells for a valid frame.
+    height_resolution : float or None
+        Cell size in m of the :class:`HeightSample` of each frame; None: none.
+    height_points : int
+        Most points of a cloud summed into its height sample (a fixed random subset,
+        seeded by the frame index).
+    features : bool
+        Measure the patch (False: height samples only).
+    """
+
+    extraction: Extraction = field(default_factory=Extraction)
+    source: str = "auto"
+    calibration: StereoCalibration | None = None
+    min_points: int = 2000
+    min_fill: float = 0.7
+    height_resolution: float | None = None
+    height_points: int = 20_000
+    features: bool = True
+
+    def __post_init__(self) -> None:
+        if self.source not in SOURCES:
+            raise InputError(f"source must be 'auto', 'cloud' or 'stereo', got {self.source!r}")
+        r = self.height_resolution
+        if r is not None and not (math.isfinite(r) and r > 0):
+            raise InputError(f"height_resolution must be a cell size > 0 in m, got {r!r}")
+
+
+def process_frame(job: FrameJob, settings: FramePass) -> FrameOutput:
+    """Features (and height sample) of one frame; never raises for a bad frame.
+
+    A frame without the points asked for (no stereo pair, an unreadable or missing file)
+    gets an invalid row saying why.
+    """
+    points, reason = _points(job, settings)
+    return process_points(points, job, settings, reason)
+
+
+def process_points(
+    points: NDArray[np.float64] | None,
+    job: FrameJob,
+    settings: FramePass,
+    reason: str = "no points",
+) -> FrameOutput:
+    """:func:`process_frame` of points already read (vehicle frame, m; None: an invalid
+    row saying ``reason``)."""
+    row: dict[str, Any]
+    if points is None:
+        row, omega, psd = {"valid": False, "reason": reason, "n_points": 0}, None, None
+    elif not settings.features:
+        row, omega, psd = {"valid": False, "reason": "not measured", "n_points": 0}, None, None
+    else:
+        row, omega, psd = _features(points, job, settings)
+    x, y, _, _, _, yaw = job.pose
+    row.update(frame=job.index, t=job.t, x=x, y=y, yaw=yaw, label=job.label)
+    heights = None
+    if points is not None and settings.height_resolution is not None:
+        heights = height_sample(points, job, settings.height_resolution, settings.height_points)
+    return FrameOutput(job.index, row, omega, psd, heights)
+
+
+def _features(points: NDArray[np.float64], job: FrameJob, settings: FramePass) -> FrameResult:
+    ex = settings.extraction
+    roll = pitch = None
+    if ex.use_imu and job.imu is not None:
+        roll, pitch = job.imu
+    return frame_features(
+        points,
+        ex,
+        roll=roll,
+        pitch=pitch,
+        min_points=settings.min_points,
+        min_fill=settings.min_fill,
+    )
+
+
+def _points(job: FrameJob, settings: FramePass) -> tuple[NDArray[np.float64] | None, str]:
+    """The frame's points in the vehicle frame (m), or None and why not."""
+    use_stereo = settings.source == "stereo" or (settings.source == "auto" and job.cloud is None)
+    try:
+        if not use_stereo:
+            if job.cloud is None:
+                return None, "no point cloud"
+            return read_cloud(job.cloud), ""
+        if job.left is None or job.right is None:
+            # Stereo is often recorded at a lower rate than the clouds: not an error of the run.
+            return None, "no stereo pair"
+        if settings.calibration is None:
+            raise InputError("stereo needs a 'calibration' in the traverse")
+        left, right = read_image(job.left), read_image(job.right)
+        spec = settings.extraction.patch
+        return stereo_to_cloud(left, right, settings.calibration, patch=spec), ""
+    except FileFormatError as exc:
+        return None, f"unreadable: {exc}"
+
+
+def height_sample(
+    points: NDArray[np.float64], job: FrameJob, resolution: float, most: int
+) -> HeightSample:
+    """World heights of (at most ``most`` of) a frame's points, summed per lattice cell.
+
+    A cloud of more than ``most`` points is thinned to every k-th point (deterministic).
+    """
+    pts = points[:: -(-len(points) // most)] if len(points) > most else points
+    x, y, z, roll, pitch, yaw = job.pose
+    xw, yw, zw = transform_columns(pts, rotation_matrix(roll, pitch, yaw), (x, y, z))
+    ok = np.isfinite(xw) & np.isfinite(yw) & np.isfinite(zw)
+    if not ok.all():
+        xw, yw, zw = xw[ok], yw[ok], zw[ok]
+    if xw.size == 0:
+        empty = np.empty(0, dtype=np.int64)
+        return HeightSample(resolution, empty, empty, np.empty(0), np.empty(0))
+    cols = np.floor(xw * (1.0 / resolution)).astype(np.int64)
+    rows = np.floor(yw * (1.0 / resolution)).astype(np.int64)
+    r0, c0 = int(rows.min()), int(cols.min())
+    height, width = int(rows.max()) - r0 + 1, int(cols.max()) - c0 + 1
+    key = (rows - r0) * width + (cols - c0)
+    sums: NDArray[np.float64]
+    counts: NDArray[np.float64]
+    if height * width <= 4 * key.size + 4096:  # a small box: count in place
+        counts = np.bincount(key, minlength=height * width).astype(np.float64)
+        sums = np.bincount(key, weights=zw, minlength=height * width).astype(np.float64)
+        cells = np.flatnonzero(counts)
+        sums, counts = sums[cells], counts[cells]
+    else:  # points spread far apart: sort them instead
+        cells, inverse = np.unique(key, return_inverse=True)
+        sums = np.bincount(inverse, weights=zw, minlength=cells.size).astype(np.float64)
+        counts = np.bincount(inverse, minlength=cells.size).astype(np.float64)
+    return HeightSample(resolution, cells // width + r0, cells % width + c0, sums, counts)
+
+
+def process_frames(jobs: Sequence[FrameJob], settings: FramePass) -> list[FrameOutput]:
+    """:func:`process_frame` of each job, single-threaded (the unit of work of a worker)."""
+    from threadpoolctl import threadpool_limits
+
+    stereo = settings.source != "cloud" and any(j.left is not None for j in jobs)
+    if stereo:
+        import cv2
+
+        cv2.setNumThreads(1)
+    with threadpool_limits(limits=1, user_api="blas"):
+        return [process_frame(job, settings) for job in jobs]
+
+
+def check_jobs(n_jobs: int) -> int:
+    """The number of worker processes for ``n_jobs`` (joblib's convention: -1 all cores)."""
+    if not isinstance(n_jobs, int) or n_jobs == 0 or n_jobs < -(os.cpu_count() or 1):
+        raise InputError(f"n_jobs must be a positive number of processes or -1, got {n_jobs!r}")
+    return n_jobs if n_jobs > 0 else max(1, (os.cpu_count() or 1) + 1 + n_jobs)
+
+
+def iter_frames(
+    jobs: Sequence[FrameJob],
+    settings: FramePass,
+    *,
+    n_jobs: int = 1,
+    chunk: int = CHUNK,
+    progress: bool = False,
+    desc: str = "frames",
+) -> Iterator[FrameOutput]:
+    """:func:`process_frame` of every job, in order, over ``n_jobs`` processes.
+
+    Parameters
+    ----------
+    jobs : sequence of FrameJob
+        The frames (:func:`frame_jobs`).
+    settings : FramePass
+        How to process them.
+    n_jobs : int
+        Worker processes (joblib; -1 all cores). 1 runs in this process.
+    chunk : int
+        Frames per task.
+    progress : bool
+        Progress bar on stderr.
+    desc : str
+        Its label.
+
+    Yields
+    ------
+    FrameOutput
+        One per job, in the order of ``jobs``; the same for any ``n_jobs``.
+    """
+    from tqdm import tqdm
+
+    workers = check_jobs(n_jobs)
+    chunks = [list(jobs[i : i + chunk]) for i in range(0, len(jobs), chunk)]
+    bar = tqdm(total=len(jobs), desc=desc, unit="frame", disable=not progress)
+    try:
+        for outputs in _run_chunks(chunks, settings, workers):
+            bar.update(len(outputs))
+            yield from outputs
+    finally:
+        bar.close()
+
+
+def _run_chunks(
+    chunks: list[list[FrameJob]], settings: FramePass, workers: int
+) -> Iterator[list[FrameOutput]]:
+    """The outputs of each chunk, in order, from ``workers`` processes: this one and
+    ``workers - 1`` joblib (loky) workers. This process takes every ``workers``-th chunk
+    itself, between handing results on, while the workers run ahead on theirs; so ``-j 2``
+    costs one extra process, not two."""
+    if workers == 1 or len(chunks) <= 1:
+        for c in chunks:
+            yield process_frames(c, settings)
+        return
+    from joblib.externals.loky import get_reusable_executor
+
+    executor = get_reusable_executor(max_workers=workers - 1)
+    ahead = 2 * (workers - 1)  # chunks queued on the workers
+    futures: dict[int, Any] = {}
+    mine = [k for k in range(len(chunks)) if k % workers == 0]
+    theirs = iter(k for k in range(len(chunks)) if k % workers != 0)
+    try:
+        for k in range(len(chunks)):
+            while len(futures) < ahead:
+                nxt = next(theirs, None)
+                if nxt is None:
+                    break
+                futures[nxt] = executor.submit(process_frames, chunks[nxt], settings)
+            if k in futures:
+                yield futures.pop(k).result()
+            else:
+                assert k in mine
+                yield process_frames(chunks[k], settings)
+    finally:
+        for f in futures.values():
+            f.cancel()
+        # The workers would idle for minutes holding their memory: the map's merge and
+        # export come next, and need it more.
+        executor.shutdown(wait=True)
+
+
+def traverse_features(
+    traverse: Traverse | PathLike,
+    extraction: Extraction | Mapping[str, Any] | None = None,
+    *,
+    source: str = "auto",
+    min_points: int = 2000,
+    min_fill: float = 0.7,
+    n_jobs: int = 1,
+    progress: bool = False,
+) -> FeatureTable:
+    """Features of every frame of a traverse.
+
+    Parameters
+    ----------
+    traverse : Traverse or path
+        A loaded traverse, or its folder / file.
+    extraction : Extraction or dict, optional
+        The patch, the IMU tilt compensation, the estimator and its noise floor
+        (:class:`rough_map.patch.Extraction`, or its ``to_dict`` form as a model records
+        it); default the paper's.
+    source : {"auto", "cloud", "stereo"}
+        Where the points come from: the frame's cloud, its stereo pair, or the cloud when
+        there is one ("auto").
+    min_points : int
+        Fewest points in the patch for a valid frame.
+    min_fill : float
+        Smallest fraction of filled cells for a valid frame.
+    n_jobs : int
+        Processes for the frames (-1: every core); the table is the same for any number.
+    progress : bool
+        Progress bar on stderr.
+
+    Raises
+    ------
+    InputError
+        An unknown ``source``, or ``"stereo"`` for a traverse without a calibration.
+    """
+    if not isinstance(traverse, Traverse):
+        traverse = load_traverse(traverse)
+    settings = traverse_pass(
+        traverse, extraction, source=source, min_points=min_points, min_fill=min_fill
+    )
+    collect = FeatureCollector(traverse.name, settings.extraction)
+    for out in iter_frames(
+        frame_jobs(traverse),
+        settings,
+        n_jobs=n_jobs,
+        progress=progress,
+        desc=f"features {traverse.name}",
+    ):
+        collect.add(out)
+    return collect.table()
+
+
+def traverse_pass(
+    traverse: Traverse,
+    extraction: Extraction | Mapping[str, Any] | None = None,
+    *,
+    source: str = "auto",
+    **options: Any,
+) -> FramePass:
+    """The :class:`FramePass` of a traverse (its calibration for stereo frames).
+
+    Raises
+    ------
+    InputError
+        An unknown ``source``, or ``"stereo"`` for a traverse without a calibration.
+    """
+    if source not in SOURCES:
+        raise InputError(f"source must be 'auto', 'cloud' or 'stereo', got {source!r}")
+    calibration = traverse.spec.calibration
+    if source == "stereo" and calibration is None:
+        raise InputError(f"{traverse.name}: stereo needs a 'calibration' in the traverse")
+    ex = Extraction.from_dict(extraction)
+    return FramePass(ex, source, calibration, **options)
+
+
+class FeatureCollector:
+    """Gathers :class:`FrameOutput` rows, in frame order, into a :class:`FeatureTable`."""
+
+    def __init__(self, name: str, extraction: Extraction) -> None:
+        self.name = name
+        self.extraction = extraction
+        self.rows: list[dict[str, Any]] = []
+        self.spectra: list[NDArray[np.float64] | None] = []
+        self.omega: NDArray[np.float64] | None = None
+
+    def add(self, out: FrameOutput) -> None:
+        """Append one frame's row and spectrum."""
+        if out.omega is not None:
+            self.omega = out.omega
+        if not out.row["valid"]:
+            log.info("frame %d invalid: %s", out.index, out.row["reason"])
+        self.rows.append(out.row)
+        self.spectra.append(out.psd)
+
+    def table(self) -> FeatureTable:
+        """The table of the frames added so far (logs how many are invalid)."""
+        n = len(self.rows)
+        n_invalid = sum(not r["valid"] for r in self.rows)
+        if n_invalid:
+            log.warning("%s: %d of %d frames have no valid patch", self.name, n_invalid, n)
+        return feature_table(self.rows, self.spectra, self.omega, self.extraction.patch, self.name)
+
+
+def feature_tables(
+    sources: Sequence[PathLike],
+    extraction: Extraction | Mapping[str, Any] | None = None,
+    *,
+    n_jobs: int = 1,
+    progress: bool = False,
+) -> list[FeatureTable]:
+    """Feature tables of traverses, computing them or reading them from files.
+
+    Parameters
+    ----------
+    sources : sequence of str or Path
+        Traverse folders or files (features are computed with ``extraction``), or features
+        tables (``.csv``/``.parquet`` written by ``rough-map features``, read as they are).
+    extraction : Extraction or dict, optional
+        The patch and estimator options (:class:`rough_map.patch.Extraction`, or its
+        ``to_dict`` form as a model records it); default the paper's.
+    n_jobs : int
+        Processes for the frames of each traverse (-1: every core).
+    progress : bool
+        Progress bars on stderr.
+
+    Returns
+    -------
+    list of FeatureTable
+    """
+    ex = Extraction.from_dict(extraction)
+    tables = []
+    for source in sources:
+        path = Path(source)
+        if path.is_file() and path.suffix.lower() in (".csv", ".parquet"):
+            tables.append(read_features(path))
+        else:
+            tables.append(traverse_features(path, ex, n_jobs=n_jobs, progress=progress))
+    return tables

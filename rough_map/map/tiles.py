@@ -1,0 +1,564 @@
+"""A map of any extent in bounded memory: square tiles on the cell lattice, spilled to disk.
+
+:class:`TiledMap` holds the accumulator layers of :mod:`rough_map.map.layers` in tiles of
+``tile_cells`` x ``tile_cells`` cells. Patches and height samples are fused into the tiles
+they touch; :meth:`TiledMap.evict` writes the tiles far from the vehicle to a folder and
+forgets them, and a tile that is needed again is read back. :meth:`TiledMap.merged` puts
+their estimates (not their sums) into one :class:`~rough_map.map.grid.GridMap` at the end.
+Fusion only adds to sums (and ``last_seen`` is a max), so the tiled map equals the one fused
+in a single grid, bit for bit.
+
+The sums themselves are the map's *state*: :meth:`TiledMap.save` writes them (tile by tile,
+never all in memory) to one ``.npz`` file, and :meth:`TiledMap.add_saved` adds a saved state
+into a map, which is how the maps of many traverses fuse into one (``rough-map batch``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import shutil
+import tempfile
+import weakref
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from rough_map._files import PathLike
+from rough_map.config import Crs
+from rough_map.errors import FileFormatError, InputError
+from rough_map.map.footprints import patch_corners
+from rough_map.map.fusion import add_vote_layers, fuse_patch
+from rough_map.map.grid import GridMap
+from rough_map.map.grid_geometry import GridGeometry
+from rough_map.map.layers import LEVEL_NAMES, init_layers, update_estimates
+from rough_map.map.state import (
+    HEIGHT_LAYERS,
+    StateTile,
+    add_elevation_layer,
+    iter_state_tiles,
+    read_state_meta,
+    write_state,
+)
+from rough_map.patch import PatchSpec
+
+log = logging.getLogger(__name__)
+
+__all__ = ["TiledMap"]
+
+#: Value layers that are sums of observations (fused by addition).
+COUNTS = ("count", "far_count")
+
+#: Layers holding the latest time seen (fused by a maximum).
+LATEST = ("last_seen", "far_last_seen")
+
+
+def is_accumulator(grid: GridMap, name: str) -> bool:
+    """Whether layer ``name`` is a sum (or latest time) that fusion adds to."""
+    return grid.info(name).kind == "internal" or name in COUNTS or name in LATEST
+
+
+class TiledMap:
+    """Fusion layers in lattice tiles, the far ones kept on disk.
+
+    Parameters
+    ----------
+    resolution : float
+        Cell size, m.
+    class_names : sequence of str
+        Terrain classes of the probabilities to come (empty: roughness layers only).
+    crs : optional
+        CRS of the world frame (:meth:`rough_map.config.Crs.from_any`).
+    spec : PatchSpec, optional
+        Patch geometry of the frames (default the paper's).
+    tile_cells : int
+        Side of a tile in cells.
+    level_names : sequence of str
+        Roughness level names, smoothest first.
+    prior : float
+        Dirichlet prior of the class probabilities.
+    spill_dir : path, optional
+        Folder for evicted tiles (default: a temporary folder, removed by :meth:`close`).
+    frame_id : str
+        ROS frame name of the map.
+    """
+
+    def __init__(
+        self,
+        resolution: float = 0.1,
+        class_names: Sequence[str] = (),
+        *,
+        crs: Any = None,
+        spec: PatchSpec | None = None,
+        tile_cells: int = 128,
+        level_names: Sequence[str] = LEVEL_NAMES,
+        prior: float = 1.0,
+        spill_dir: str | Path | None = None,
+        frame_id: str = "map",
+    ) -> None:
+        if not (isinstance(tile_cells, int) and tile_cells >= 8):
+            raise InputError(f"tile_cells must be a whole number >= 8, got {tile_cells!r}")
+        self.geometry = GridGeometry(resolution, crs=Crs.from_any(crs), frame_id=frame_id)
+        self.class_names = tuple(str(c) for c in class_names)
+        self.level_names = tuple(level_names)
+        self.prior = float(prior)
+        self.spec = spec or PatchSpec()
+        self.tile_cells = tile_cells
+        self._tiles: dict[tuple[int, int], GridMap] = {}
+        self._spilled: set[tuple[int, int]] = set()
+        self.groups: tuple[str, ...] = ("near",)
+        self._own_dir = spill_dir is None
+        self._dir = Path(
+            tempfile.mkdtemp(prefix="rough_map_tiles_") if spill_dir is None else spill_dir
+        )
+        self._dir.mkdir(parents=True, exist_ok=True)
+        if self._own_dir:  # removed with the map, at the latest when Python exits
+            self._cleanup = weakref.finalize(self, shutil.rmtree, self._dir, True)
+        self.bounds: tuple[float, float, float, float] | None = None
+
+    # -- tiles -------------------------------------------------------------------------
+
+    @property
+    def resolution(self) -> float:
+        """Cell size, m."""
+        return self.geometry.resolution
+
+    @property
+    def tile_size(self) -> float:
+        """Side of a tile, m."""
+        return self.tile_cells * self.resolution
+
+    def keys(self) -> list[tuple[int, int]]:
+        """``(tile_row, tile_col)`` of every tile holding data, in memory or on disk."""
+        return sorted(set(self._tiles) | self._spilled)
+
+    def in_memory(self) -> int:
+        """Number of tiles held in memory."""
+        return len(self._tiles)
+
+    def _tile_geometry(self, key: tuple[int, int]) -> GridGeometry:
+        side = self.tile_size
+        return GridGeometry(
+            self.resolution,
+            (key[1] * side, key[0] * side),
+            (self.tile_cells, self.tile_cells),
+            self.geometry.crs,
+            self.geometry.frame_id,
+        )
+
+    def _blank(self, geometry: GridGeometry) -> GridMap:
+        """A grid with the accumulator layers only (what fusion adds to)."""
+        grid = GridMap(geometry)
+        init_layers(
+            grid,
+            self.class_names,
+            level_names=self.level_names,
+            prior=self.prior,
+            groups=self.groups,
+        )
+        add_vote_layers(grid)
+        grid.add_layer(HEIGHT_LAYERS[0], units="m", fill=0.0, kind="internal")
+        grid.add_layer(HEIGHT_LAYERS[1], units="1", fill=0.0, kind="internal")
+        for name in grid.layers:
+            if not is_accumulator(grid, name):
+                grid.drop_layer(name)
+        return grid
+
+    def tile(self, key: tuple[int, int]) -> GridMap:
+        """The tile ``key``: from memory, read back from disk, or new."""
+        grid = self._tiles.get(key)
+        if grid is not None:
+            return grid
+        grid = self._blank(self._tile_geometry(key))
+        if key in self._spilled:
+            with np.load(self._path(key)) as saved:
+                r0, r1, c0, c1 = (int(v) for v in saved["_window"])
+                for name in saved.files:
+                    if name in grid:
+                        grid[name][r0:r1, c0:c1] = saved[name]
+            self._spilled.discard(key)
+            self._path(key).unlink()
+        self._tiles[key] = grid
+        return grid
+
+    def add_group(self, group: str) -> None:
+        """Hold the accumulators of another provenance group (``"far"``) too."""
+        if group in self.groups:
+            return
+        self.groups = (*self.groups, group)
+        for tile in self._tiles.values():
+            init_layers(tile, self.class_names, groups=(group,))
+            for name in tile.layers:
+                if not is_accumulator(tile, name):
+                    tile.drop_layer(name)
+
+    def _path(self, key: tuple[int, int]) -> Path:
+        return self._dir / f"tile_{key[0]}_{key[1]}.npz"
+
+    def _keys_over(self, bounds: tuple[float, float, float, float]) -> Iterator[tuple[int, int]]:
+        side = self.tile_size
+        c0, c1 = math.floor(bounds[0] / side), math.floor(bounds[2] / side)
+        r0, r1 = math.floor(bounds[1] / side), math.floor(bounds[3] / side)
+        for r in range(r0, r1 + 1):
+            for c in range(c0, c1 + 1):
+                yield (r, c)
+
+    def _grow(self, bounds: tuple[float, float, float, float]) -> None:
+        if self.bounds is None:
+            self.bounds = bounds
+        else:
+            b = self.bounds
+            self.bounds = (
+                min(b[0], bounds[0]),
+                min(b[1], bounds[1]),
+                max(b[2], bounds[2]),
+                max(b[3], bounds[3]),
+            )
+
+    # -- fusion ------------------------------------------------------------------------
+
+    def cover(self, x: float, y: float, yaw: float) -> None:
+        """Make :meth:`merged` cover the patch seen from this pose (m, rad), fused or not."""
+        corners = patch_corners(x, y, yaw, self.spec)
+        self._grow((*corners.min(axis=0), *corners.max(axis=0)))
+
+    def fuse_patch(self, x: float, y: float, yaw: float, **observation: Any) -> int:
+        """Fuse one frame's patch (as :func:`rough_map.map.fusion.fuse_patch`: ``t``,
+        ``R``, ``w``, ``sigma_R``, ``sigma_w``, ``probs``, ``level``, ``count``) into the
+        tiles it covers; returns how many cells it covered.
+
+        The patch is fused into a scratch grid around it, which is then added to the
+        tiles: one fusion whatever the number of tiles the patch straddles."""
+        corners = patch_corners(x, y, yaw, self.spec)
+        bounds = (*corners.min(axis=0), *corners.max(axis=0))
+        self._grow(bounds)
+        scratch = self._blank(GridGeometry.covering(bounds, self.resolution, crs=self.geometry.crs))
+        cells = fuse_patch(
+            scratch, x, y, yaw, spec=self.spec, grow=False, update=False, **observation
+        )
+        if cells.size:
+            self._add_grid(scratch)
+        return int(cells.shape[0])
+
+    def add_layers_from(self, part: GridMap, names: Sequence[str]) -> None:
+        """Add layers ``names`` of a lattice-aligned grid (sums; latest times by maximum)
+        into the tiles, e.g. the far-field accumulators fused into a merged map."""
+        self._add_grid(part, names)
+
+    def _add_grid(self, part: GridMap, names: Sequence[str] | None = None) -> None:
+        """Add a lattice-aligned grid of accumulators into the tiles it overlaps."""
+        n = self.tile_cells
+        pr0 = round(part.geometry.origin[1] / self.resolution)
+        pc0 = round(part.geometry.origin[0] / self.resolution)
+        rows, cols = part.shape
+        for tr in range(pr0 // n, (pr0 + rows - 1) // n + 1):
+            for tc in range(pc0 // n, (pc0 + cols - 1) // n + 1):
+                tile = self.tile((tr, tc))
+                r0, r1 = max(pr0, tr * n), min(pr0 + rows, (tr + 1) * n)
+                c0, c1 = max(pc0, tc * n), min(pc0 + cols, (tc + 1) * n)
+                dst = (slice(r0 - tr * n, r1 - tr * n), slice(c0 - tc * n, c1 - tc * n))
+                src = (slice(r0 - pr0, r1 - pr0), slice(c0 - pc0, c1 - pc0))
+                for name in part.layers if names is None else names:
+                    if name not in tile:
+                        continue
+                    if name in LATEST:
+                        np.fmax(tile[name][dst], part[name][src], out=tile[name][dst])
+                    else:
+                        tile[name][dst] += part[name][src]
+
+    def add_heights(
+        self,
+        rows: NDArray[np.int64],
+        cols: NDArray[np.int64],
+        sums: NDArray[np.float64],
+        counts: NDArray[np.float64],
+    ) -> None:
+        """Add height sums (m) and point counts per lattice cell (a frame's
+        :class:`~rough_map.features.HeightSample` at this map's resolution)."""
+        if rows.size == 0:
+            return
+        n = self.tile_cells
+        tr, tc = rows // n, cols // n
+        for key in sorted(set(zip(tr.tolist(), tc.tolist(), strict=True))):
+            sel = (tr == key[0]) & (tc == key[1])
+            tile = self.tile(key)
+            r, c = rows[sel] - key[0] * n, cols[sel] - key[1] * n
+            np.add.at(tile[HEIGHT_LAYERS[0]], (r, c), sums[sel])
+            np.add.at(tile[HEIGHT_LAYERS[1]], (r, c), counts[sel])
+
+    def evict(self, x: float, y: float, radius: float) -> int:
+        """Write to disk, and forget, the tiles whose centre is farther than ``radius`` m
+        (plus half a tile diagonal) from ``(x, y)``; returns how many."""
+        side = self.tile_size
+        reach = radius + side * math.sqrt(0.5)
+        far = [
+            k
+            for k in self._tiles
+            if math.hypot((k[1] + 0.5) * side - x, (k[0] + 0.5) * side - y) > reach
+        ]
+        for key in far:
+            self._spill(key, self._tiles.pop(key))
+        if far:
+            log.debug(
+                "%d tile(s) written to %s, %d in memory", len(far), self._dir, len(self._tiles)
+            )
+        return len(far)
+
+    def _spill(self, key: tuple[int, int], grid: GridMap) -> None:
+        """Write the tile's cells that hold data (their bounding box) to disk."""
+        used = np.zeros(grid.shape, dtype=bool)
+        for name in grid.layers:
+            if name not in LATEST:
+                used |= grid[name] != 0
+        if not used.any():
+            return
+        rr, cc = np.flatnonzero(used.any(axis=1)), np.flatnonzero(used.any(axis=0))
+        r0, r1, c0, c1 = int(rr[0]), int(rr[-1]) + 1, int(cc[0]), int(cc[-1]) + 1
+        arrays: dict[str, Any] = {name: grid[name][r0:r1, c0:c1] for name in grid.layers}
+        with open(self._path(key), "wb") as fh:
+            np.savez(fh, _window=np.array([r0, r1, c0, c1]), **arrays)
+        self._spilled.add(key)
+
+    # -- the state on disk ------------------------------------------------------------
+
+    def save(self, path: PathLike, attrs: dict[str, Any] | None = None) -> Path:
+        """Write the sums of every tile (the part holding data) to one state file
+        (:mod:`rough_map.map.state`), atomically, one tile in memory at a time."""
+        infos: dict[str, dict[str, Any]] = {}
+
+        def tiles() -> Iterator[StateTile]:
+            for key in self.keys():
+                tile = self.tile(key)
+                for name in tile.layers:
+                    i = tile.info(name)
+                    fill = None if math.isnan(i.fill) else i.fill
+                    infos[name] = {"units": i.units, "kind": i.kind, "fill": fill}
+                self._spill(key, self._tiles.pop(key))
+                if key in self._spilled:
+                    with np.load(self._path(key)) as saved:
+                        r0, r1, c0, c1 = (int(v) for v in saved["_window"])
+                        arrays = {n: saved[n] for n in saved.files if n != "_window"}
+                    yield key, (r0, r1, c0, c1), arrays
+
+        meta = self._meta(attrs)
+        return write_state(path, meta, tiles())
+
+    def _meta(self, attrs: dict[str, Any] | None) -> dict[str, Any]:
+        return {
+            "resolution": self.resolution,
+            "tile_cells": self.tile_cells,
+            "crs": self.geometry.crs.model_dump(mode="json"),
+            "frame_id": self.geometry.frame_id,
+            "class_names": list(self.class_names),
+            "level_names": list(self.level_names),
+            "prior": self.prior,
+            "groups": list(self.groups),
+            "bounds": None if self.bounds is None else [float(v) for v in self.bounds],
+            "spec": {
+                "ahead": self.spec.ahead,
+                "size": self.spec.size,
+                "lateral": self.spec.lateral,
+            },
+            "attrs": _jsonable(attrs or {}),
+        }
+
+    @classmethod
+    def open_saved(cls, path: PathLike, spill_dir: str | Path | None = None) -> TiledMap:
+        """An empty map with the settings of a saved state (to add it, and others, to)."""
+        meta = read_state_meta(path)
+        try:
+            return cls(
+                float(meta["resolution"]),
+                tuple(meta["class_names"]),
+                crs=Crs.model_validate(meta["crs"]),
+                spec=PatchSpec(**meta["spec"]),
+                tile_cells=int(meta["tile_cells"]),
+                level_names=tuple(meta["level_names"]),
+                prior=float(meta["prior"]),
+                spill_dir=spill_dir,
+                frame_id=str(meta["frame_id"]),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise FileFormatError(Path(path), f"meta.json: {exc}") from None
+
+    def add_saved(self, path: PathLike) -> dict[str, Any]:
+        """Add a state written by :meth:`save` (same lattice, CRS and classes) into this
+        map, one tile in memory at a time; returns the ``attrs`` saved with it.
+
+        Raises
+        ------
+        FileFormatError
+            Not a state file, or an unreadable one.
+        InputError
+            A state of another cell size, tile size, CRS or class list.
+        """
+        meta = read_state_meta(path)
+        try:
+            theirs = (
+                float(meta["resolution"]),
+                int(meta["tile_cells"]),
+                tuple(meta["class_names"]),
+                tuple(meta["level_names"]),
+            )
+            crs = Crs.model_validate(meta["crs"])
+            groups = [str(g) for g in meta["groups"]]
+            bounds = meta["bounds"]
+        except (KeyError, TypeError, ValueError) as exc:
+            raise FileFormatError(Path(path), f"meta.json: {exc}") from None
+        mine = (self.resolution, self.tile_cells, self.class_names, self.level_names)
+        if mine != theirs or crs != self.geometry.crs:
+            raise InputError(
+                f"{path}: a map of {theirs[0]} m cells, {theirs[1]}-cell tiles, CRS "
+                f"{crs.code}, classes {list(theirs[2])}; this one has {mine[0]} m, "
+                f"{mine[1]}, {self.geometry.crs.code}, {list(mine[2])}"
+            )
+        for group in groups:
+            self.add_group(group)
+        if bounds is not None:
+            b = [float(v) for v in bounds]
+            self._grow((b[0], b[1], b[2], b[3]))
+        for key, (r0, r1, c0, c1), arrays in iter_state_tiles(path, self.tile_cells):
+            tile = self.tile(key)
+            win = (slice(r0, r1), slice(c0, c1))
+            for name, values in arrays.items():
+                if name not in tile:
+                    continue
+                if name in LATEST:
+                    tile[name][win] = np.fmax(tile[name][win], values)
+                else:
+                    tile[name][win] += values
+            self._spill(key, self._tiles.pop(key))
+        return dict(meta.get("attrs") or {})
+
+    # -- the whole map -----------------------------------------------------------------
+
+    def window(self, bounds: tuple[float, float, float, float]) -> GridMap:
+        """The map over ``bounds`` (xmin, ymin, xmax, ymax in m) as it now stands, with its
+        estimate layers and ``elevation``; the tiles are left as they are."""
+        geo = GridGeometry.covering(
+            bounds, self.resolution, crs=self.geometry.crs, frame_id=self.geometry.frame_id
+        )
+        return self._assemble(geo, None, consume=False)
+
+    def merged(self, margin: float = 1.0, attrs: dict[str, Any] | None = None) -> GridMap:
+        """One :class:`GridMap` covering every fused patch plus ``margin`` m, with the
+        estimate layers and ``elevation`` (m, mean world z of the points per cell); the
+        sums stay in the tiles (:meth:`save`). Tiles go to disk as they are placed, so
+        memory holds the estimates and one tile."""
+        b = self.bounds or (0.0, 0.0, 0.0, 0.0)
+        geo = GridGeometry.covering(
+            b,
+            self.resolution,
+            margin=margin,
+            crs=self.geometry.crs,
+            frame_id=self.geometry.frame_id,
+        )
+        return self._assemble(geo, attrs, consume=True)
+
+    def _assemble(
+        self, geo: GridGeometry, attrs: dict[str, Any] | None, *, consume: bool
+    ) -> GridMap:
+        """The estimate layers over ``geo``, computed tile by tile (the sums stay in the
+        tiles; with ``consume`` each tile goes back to disk once placed)."""
+        grid = GridMap(geo, attrs=attrs)
+        init_layers(
+            grid,
+            self.class_names,
+            level_names=self.level_names,
+            prior=self.prior,
+            groups=self.groups,
+        )
+        for name in grid.layers:
+            if grid.info(name).kind == "internal":
+                grid.drop_layer(name)
+        r_off = round(geo.origin[1] / self.resolution)
+        c_off = round(geo.origin[0] / self.resolution)
+        n = self.tile_cells
+        keys = [k for k in self._keys_over(geo.bounds) if k in self._tiles or k in self._spilled]
+        for key in keys:
+            tile = self.tile(key)
+            estimates = self._estimates(tile)
+            self._place(grid, estimates, key[0] * n - r_off, key[1] * n - c_off, n)
+            if consume:
+                self._spill(key, self._tiles.pop(key))
+        if "elevation" not in grid:
+            grid.add_layer("elevation", units="m", description="mean terrain height (world z)")
+        return grid
+
+    def _estimates(self, tile: GridMap) -> GridMap:
+        """The estimate layers of one tile (a new grid; the tile is left as it is)."""
+        est = GridMap(tile.geometry, attrs=dict(tile.attrs))
+        for name in tile.layers:
+            info = tile.info(name)
+            est.add_layer(
+                name,
+                units=info.units,
+                description=info.description,
+                fill=info.fill,
+                kind=info.kind,
+                categories=info.categories,
+                data=tile[name],
+            )
+        init_layers(
+            est,
+            self.class_names,
+            level_names=self.level_names,
+            prior=self.prior,
+            groups=self.groups,
+        )
+        update_estimates(est)
+        add_elevation_layer(est)
+        for name in est.layers:
+            if est.info(name).kind == "internal":
+                est.drop_layer(name)
+        return est
+
+    @staticmethod
+    def _place(grid: GridMap, tile: GridMap, r0: int, c0: int, n: int) -> None:
+        """Copy the part of ``tile`` (whose cell [0, 0] is the grid's [r0, c0]) inside the grid."""
+        rows, cols = grid.shape
+        gr0, gc0 = max(r0, 0), max(c0, 0)
+        gr1, gc1 = min(r0 + n, rows), min(c0 + n, cols)
+        if gr0 >= gr1 or gc0 >= gc1:
+            return
+        dst = (slice(gr0, gr1), slice(gc0, gc1))
+        src = (slice(gr0 - r0, gr1 - r0), slice(gc0 - c0, gc1 - c0))
+        for name in tile.layers:
+            if name not in grid:
+                info = tile.info(name)
+                grid.add_layer(
+                    name,
+                    units=info.units,
+                    description=info.description,
+                    fill=info.fill,
+                    kind=info.kind,
+                )
+            grid[name][dst] = tile[name][src]
+
+    def close(self) -> None:
+        """Remove the tiles written to disk (and the temporary folder)."""
+        for key in list(self._spilled):
+            self._path(key).unlink(missing_ok=True)
+        self._spilled.clear()
+        self._tiles.clear()
+        if self._own_dir:
+            shutil.rmtree(self._dir, ignore_errors=True)
+
+    def __enter__(self) -> TiledMap:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _jsonable(attrs: dict[str, Any]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in attrs.items():
+        if isinstance(v, str | int | float | bool) or v is None:
+            out[k] = v
+        elif isinstance(v, tuple | list) and all(isinstance(x, str | int | float) for x in v):
+            out[k] = list(v)
+    return out

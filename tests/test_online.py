@@ -1,0 +1,194 @@
+"""One pass per frame, the same result on any number of processes, and the streaming mapper."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rough_map.classify import load_terrain_model
+from rough_map.errors import FileFormatError, InputError
+from rough_map.features import FramePass, frame_jobs, iter_frames, traverse_features
+from rough_map.features.frames import FrameJob, height_sample
+from rough_map.io.traverse import load_traverse
+from rough_map.map import fuse_traverse
+from rough_map.map.tiles import TiledMap
+from rough_map.online import OnlineMapper
+from rough_map.workflow import analyse, write_outputs
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_terrain_model("default")
+
+
+def _same_tables(a, b) -> None:
+    for c in a.columns:
+        x, y = a[c], b[c]
+        if x.dtype.kind == "f":
+            assert np.array_equal(x, y, equal_nan=True), c
+        else:
+            assert list(x) == list(y), c
+    assert np.array_equal(a.log_psd, b.log_psd, equal_nan=True)
+
+
+def test_features_identical_on_two_processes(small_traverse: Path) -> None:
+    one = traverse_features(small_traverse, n_jobs=1)
+    two = traverse_features(small_traverse, n_jobs=2)
+    _same_tables(one, two)
+    assert one.valid.sum() > 0
+
+
+def test_frames_come_back_in_order_with_small_chunks(small_traverse: Path) -> None:
+    trav = load_traverse(small_traverse)
+    jobs = frame_jobs(trav)
+    outs = list(iter_frames(jobs, FramePass(), n_jobs=2, chunk=2))
+    assert [o.index for o in outs] == list(range(len(trav)))
+
+
+@pytest.mark.parametrize("n_jobs", [0, -100, 1.5])
+def test_bad_n_jobs(small_traverse: Path, n_jobs) -> None:
+    with pytest.raises(InputError, match="n_jobs must be"):
+        traverse_features(small_traverse, n_jobs=n_jobs)
+
+
+def test_height_sample_lands_in_the_right_world_cell() -> None:
+    """A flat cloud 1 m ahead at z = 0.2, seen from (10, -3, 0.5) heading north: world
+    (10, -2), height 0.7, in lattice cell row floor(-2 / 0.1), col floor(10 / 0.1)."""
+    rng = np.random.default_rng(0)
+    pts = np.column_stack(
+        [rng.uniform(0.96, 0.99, 500), rng.uniform(-0.04, -0.01, 500), np.full(500, 0.2)]
+    )
+    job = FrameJob(0, 0.0, (10.0, -3.0, 0.5, 0.0, 0.0, math.pi / 2))
+    h = height_sample(pts, job, 0.1, 20_000)
+    assert h.rows.tolist() == [-21] and h.cols.tolist() == [100]
+    assert h.counts.tolist() == [500.0]
+    assert h.sums[0] / h.counts[0] == pytest.approx(0.7)
+
+
+def test_map_is_the_table_fusion_with_spilled_tiles(small_traverse: Path, model) -> None:
+    """The tiled, spilled map equals fusing the whole features table in one grid."""
+    result = analyse(small_traverse, model, near_far=False)
+    pred = result.prediction
+    assert pred is not None
+    names = tuple(str(c) for c in pred.classes)
+    lv = {n: i for i, n in enumerate(model.level_names_)}
+    levels = np.array([lv.get(str(v), np.nan) for v in pred.level], dtype=float)
+    ref = fuse_traverse(
+        result.features, pred.filtered_proba, names, levels, spec=result.extraction.patch
+    )
+    assert ref.shape == result.map.shape and ref.geometry.origin == result.map.geometry.origin
+    estimates = [n for n in ref.layers if ref.info(n).kind != "internal"]
+    assert sorted([*estimates, "elevation"]) == sorted(result.map.layers)
+    for layer in estimates:
+        assert np.array_equal(ref[layer], result.map[layer], equal_nan=True), layer
+    assert np.isfinite(result.map["elevation"]).sum() > 10
+
+
+def test_small_tiles_and_window_change_nothing(small_traverse: Path, model, monkeypatch) -> None:
+    ref = analyse(small_traverse, model, near_far=False).map
+    init = OnlineMapper.__init__
+
+    def tiny(self, *args, **kwargs):
+        kwargs.update(window=0.3, tile_cells=8)
+        init(self, *args, **kwargs)
+
+    monkeypatch.setattr(OnlineMapper, "__init__", tiny)
+    got = analyse(small_traverse, model, near_far=False, n_jobs=2).map
+    assert sorted(got.layers) == sorted(ref.layers)
+    for layer in ref.layers:
+        assert np.array_equal(ref[layer], got[layer], equal_nan=True), layer
+
+
+def test_online_mapper_frame_by_frame(small_traverse: Path, model, tmp_path: Path) -> None:
+    trav = load_traverse(small_traverse)
+    table = traverse_features(trav, model.extraction_)
+    spill = tmp_path / "tiles"
+    mapper = OnlineMapper(model, window=0.5, tile_cells=8, spill_dir=spill, name=trav.name)
+    most = 0
+    for i, frame in enumerate(trav.frames):
+        imu = None if frame.imu is None else (frame.imu.roll, frame.imu.pitch)
+        up = mapper.update(frame.pose, cloud=trav.load_cloud(i), imu=imu, t=frame.t)
+        most = max(most, mapper.tiles.in_memory())
+        assert up.index == i
+        if not up.features["valid"]:
+            continue
+        assert up.features["R"] == table["R"][i]  # the same measurement as offline
+        assert up.posterior is not None and up.posterior.sum() == pytest.approx(1.0)
+        assert up.label in mapper.classes
+        assert up.map is not None and np.isfinite(up.map["R"]).any()
+        assert set(mapper.classes) <= {c[2:] for c in up.map.layers if c.startswith("p_")}
+    assert most <= 9  # the tiles within 0.5 m of the vehicle, not the whole course
+    assert any(spill.iterdir())  # the rest went to disk
+    grid = mapper.finish()
+    mapper.close()
+    assert not spill.exists() or not any(spill.iterdir())
+    offline = analyse(trav, model, near_far=False).map
+    for layer in ("R", "w", "count", "sigma_R"):
+        assert np.array_equal(grid[layer], offline[layer], equal_nan=True), layer
+
+
+def test_online_mapper_refuses_a_stereo_pair_without_calibration(model) -> None:
+    mapper = OnlineMapper(model)
+    img = np.zeros((10, 10), dtype=np.uint8)
+    with pytest.raises(InputError, match="calibration"):
+        mapper.update((0, 0, 0, 0, 0, 0), left=img, right=img)
+    mapper.finish()
+
+
+def test_online_mapper_bad_window() -> None:
+    with pytest.raises(InputError, match="window must be"):
+        OnlineMapper(None, window=0.0)
+
+
+def test_tiled_map_bad_tile_size() -> None:
+    with pytest.raises(InputError, match="tile_cells"):
+        TiledMap(0.1, tile_cells=2)
+
+
+def test_map_state_round_trip_and_fusion(small_traverse: Path, model, tmp_path: Path) -> None:
+    result = analyse(small_traverse, model, near_far=False)
+    assert result.mapper is not None
+    path = result.mapper.save_state(tmp_path / "s.npz")
+    back = TiledMap.open_saved(path)
+    assert back.add_saved(path) == {"name": result.traverse.name}
+    again = back.merged()
+    grid = result.map
+    assert again.geometry == grid.geometry and sorted(again.layers) == sorted(grid.layers)
+    for layer in grid.layers:
+        assert np.array_equal(again[layer], grid[layer], equal_nan=True), layer
+    # one map fused with itself: counts double, the estimates stay (same observations twice)
+    back.add_saved(path)
+    twice = back.merged()
+    assert np.array_equal(twice["count"], 2 * grid["count"])
+    seen = grid["count"] > 0
+    assert np.allclose(twice["R"][seen], grid["R"][seen])
+    assert np.allclose(twice["elevation"], grid["elevation"], equal_nan=True)
+    back.close()
+
+
+def test_map_state_rejects_other_files(small_traverse: Path, tmp_path: Path) -> None:
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, x=np.zeros(3))
+    with pytest.raises(FileFormatError, match=r"bad\.npz.*not a readable map state"):
+        TiledMap.open_saved(bad)
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(FileFormatError, match=r"junk\.npz.*not a readable map state"):
+        TiledMap(0.1).add_saved(tmp_path / "junk.npz")
+    result = analyse(small_traverse, None, near_far=False, resolution=0.2)
+    assert result.mapper is not None
+    state = result.mapper.save_state(tmp_path / "coarse.npz")
+    with pytest.raises(InputError, match=r"coarse\.npz: a map of 0\.2 m cells"):
+        TiledMap(0.1).add_saved(state)
+
+
+def test_outputs_identical_for_any_jobs(small_traverse: Path, model, tmp_path: Path) -> None:
+    for n in (1, 2):
+        result = analyse(small_traverse, model, near_far=False, n_jobs=n)
+        write_outputs(result, tmp_path / f"j{n}", png=False)
+    names = sorted(p.name for p in (tmp_path / "j1").iterdir())
+    assert names == sorted(p.name for p in (tmp_path / "j2").iterdir())
+    for name in names:
+        assert (tmp_path / "j1" / name).read_bytes() == (tmp_path / "j2" / name).read_bytes(), name
