@@ -158,6 +158,62 @@ def run_map(folder: Path, out: Path, jobs: int) -> tuple[float, float]:
     return wall, peak
 
 
+def make_stereo_traverse(work: Path, source: Path, frames: int) -> Path:
+    """``frames`` stereo frames (no clouds), the pairs of ``source`` copied one per frame."""
+    out = work / f"stereo_{frames}"
+    if (out / "traverse.json").is_file():
+        return out
+    src = load_traverse(source)
+    pairs = [(f, src.resolve(f.left), src.resolve(f.right)) for f in src.frames if f.left]
+    if not pairs:
+        raise SystemExit(f"{source} has no stereo pairs")
+    tmp = out.with_name(out.name + ".part")
+    shutil.rmtree(tmp, ignore_errors=True)
+    (tmp / "left").mkdir(parents=True)
+    (tmp / "right").mkdir()
+    spec = src.spec.model_dump(mode="json", exclude_none=True)
+    spec.pop("height_field", None)
+    spec["frames"] = []
+    for i in range(frames):
+        frame, left, right = pairs[i % len(pairs)]
+        shutil.copyfile(left, tmp / f"left/{i:06d}.png")
+        shutil.copyfile(right, tmp / f"right/{i:06d}.png")
+        row = frame.model_dump(mode="json", exclude_none=True)
+        row.pop("cloud", None)
+        row.update(t=i * 0.5, left=f"left/{i:06d}.png", right=f"right/{i:06d}.png")
+        row["pose"]["x"] = i * 0.25
+        spec["frames"].append(row)
+    from rough_map.config import TraverseSpec
+
+    save_traverse(TraverseSpec.model_validate(spec), tmp)
+    tmp.rename(out)
+    return out
+
+
+def stereo(folder: Path, jobs: int) -> None:
+    """`rough-map features --points-from stereo -j N` end to end, against decoding alone."""
+    from rough_map.io.images import read_image
+
+    trav = load_traverse(folder)
+    t0 = time.perf_counter()
+    for f in trav.frames[:40]:
+        read_image(trav.resolve(f.left))
+        read_image(trav.resolve(f.right))
+    decode = (time.perf_counter() - t0) / 40
+    cmd = [sys.executable, "-m", "rough_map.cli.main", "features", str(folder),
+           "--points-from", "stereo", "--out", str(folder.parent / "stereo.csv"),
+           "-j", str(jobs), "-q"]  # fmt: skip
+    t0 = time.perf_counter()
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+    wall = time.perf_counter() - t0
+    n = len(trav)
+    print(f"stereo: {n} pairs; decoding a pair on one core {decode * 1e3:.0f} ms "
+          f"({1 / decode:.1f} pairs/s)")
+    print(f"rough-map features --points-from stereo -j {jobs}: {wall:.1f} s wall, "
+          f"{n / wall:.1f} frames/s end to end (start-up included), x{n / wall / 16:.2f} the "
+          f"camera's 16 frames/s, x{n / wall * decode:.2f} the one-core decoding rate")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=7200)
@@ -166,8 +222,17 @@ def main() -> None:
     ap.add_argument("--sample", type=int, default=300, help="frames timed per stage")
     ap.add_argument("--work", type=Path, default=Path("/tmp/rough_map_bench"))
     ap.add_argument("--json", action="store_true")
+    ap.add_argument(
+        "--stereo",
+        type=Path,
+        metavar="TRAVERSE",
+        help="instead: a stereo traverse of --frames pairs copied from TRAVERSE's, end to end",
+    )
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
+    if args.stereo:
+        stereo(make_stereo_traverse(args.work, args.stereo, args.frames), args.jobs)
+        return
     folder = make_traverse(args.work, args.frames, args.points_per_cell)
     paths = sorted((folder / "clouds").glob("*.npy"))
     n_points = len(np.load(paths[0]))

@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from threadpoolctl import ThreadpoolController
 
 from rough_map.classify import (
     TerrainModel,
@@ -117,6 +118,11 @@ class OnlineMapper:
         Validity of a patch (:func:`rough_map.features.frame_features`).
     name : str
         Name of the run (the features table's and the map's).
+
+    Notes
+    -----
+    Memory: the tiles within ``window`` of the vehicle, plus each frame's feature row (about
+    2 KB, for :meth:`features`). BLAS is held to one thread while a frame is processed.
     """
 
     def __init__(
@@ -136,10 +142,10 @@ class OnlineMapper:
     ) -> None:
         if not (isinstance(window, int | float) and math.isfinite(window) and window > 0):
             raise InputError(f"window must be a radius > 0 in m, got {window!r}")
-        self.model = (
+        self.model: TerrainModel | None = (
             model
             if model is None or isinstance(model, TerrainModel)
-            else (load_terrain_model(model))
+            else load_terrain_model(model)
         )
         if extraction is None:
             extraction = Extraction.from_dict(
@@ -157,7 +163,9 @@ class OnlineMapper:
         levels = self.model.levels_ if self.model is not None else load_roughness_levels(None)
         self.level_names = tuple(levels.levels)
         self.level_thresholds = tuple(float(v) for v in levels.values())
-        self.classes = tuple(str(c) for c in self.model.classes_) if self.model else ()
+        self.classes = (
+            tuple(str(c) for c in self.model.classes_) if self.model is not None else ()
+        )
         self.window = float(window)
         self.name = name
         self.tiles = TiledMap(
@@ -173,8 +181,6 @@ class OnlineMapper:
         self._track: list[tuple[float, float]] = []
         self._log_belief: NDArray[np.float64] | None = None
         self._last_xy: tuple[float, float] | None = None
-        from threadpoolctl import ThreadpoolController
-
         self._blas = ThreadpoolController()  # found once; limited around each frame
 
     # -- one frame ---------------------------------------------------------------------

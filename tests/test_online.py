@@ -192,3 +192,12 @@ def test_outputs_identical_for_any_jobs(small_traverse: Path, model, tmp_path: P
     assert names == sorted(p.name for p in (tmp_path / "j2").iterdir())
     for name in names:
         assert (tmp_path / "j1" / name).read_bytes() == (tmp_path / "j2" / name).read_bytes(), name
+
+
+@pytest.mark.parametrize("value", ["0", "-2", "two"])
+def test_cli_rejects_bad_jobs(small_traverse: Path, tmp_path: Path, capsys, value: str) -> None:
+    from rough_map.cli.main import main
+
+    assert main(["map", str(small_traverse), "--out", str(tmp_path / "m"), "-j", value]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "-j/--jobs" in err[0] and value in err[0]

@@ -22,14 +22,8 @@ from rough_map.io.truth import (
 from rough_map.map.grid import GridMap
 from rough_map.map.grid_geometry import GridGeometry
 from rough_map.simulate.course import SensorSpec, simulate
-from rough_map.simulate.world import (
-    CLASS_NAMES,
-    Segment,
-    WorldTiles,
-    build_world,
-    course_layout,
-    cross_fade,
-)
+from rough_map.simulate.world import CLASS_NAMES, Segment, build_world, course_layout
+from rough_map.simulate.world_tiles import WorldTiles, cross_fade
 
 SPARSE = SensorSpec(points_per_cell=3.0)
 #: A small world: 4 mm cells, 1.5 m wide.

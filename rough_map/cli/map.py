@@ -28,9 +28,9 @@ def register(sub: argparse._SubParsersAction) -> None:
             "stereo images, extend it beyond the patch with near-to-far learning. Writes "
             "DIR/map.tif (float bands), DIR/map_class.tif (class with colour table), one PNG "
             "per layer, DIR/labels.csv, DIR/features.csv (with its metadata in "
-            "DIR/features.csv.json) and DIR/map_state.npz (the fusion sums, which "
-            "`rough-map batch` adds up across traverses). Each cloud is read once; -j N "
-            "spreads the frames over N processes with the same result."
+            "DIR/features.csv.json) and, with --state, DIR/map_state.npz (the fusion sums, "
+            "which `rough-map batch` adds up across traverses). Each cloud is read once; "
+            "-j N spreads the frames over N processes with the same result."
         ),
     )
     add_traverses_arg(p)
@@ -52,6 +52,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="near-to-far from the stereo images (auto: when there are images)",
     )
     p.add_argument("--no-png", action="store_true", help="skip the PNGs")
+    p.add_argument(
+        "--state",
+        action="store_true",
+        help="also write DIR/map_state.npz, the fusion sums (what rough-map batch adds up)",
+    )
     p.add_argument(
         "--gridmap-bag",
         action="store_true",
@@ -85,7 +90,12 @@ def run(args: argparse.Namespace) -> int:
         progress=args.progress,
     )
     written = write_outputs(
-        result, out, png=not args.no_png, gridmap_bag=args.gridmap_bag, progress=args.progress
+        result,
+        out,
+        png=not args.no_png,
+        gridmap_bag=args.gridmap_bag,
+        state=args.state,
+        progress=args.progress,
     )
     paths = {k: str(v) for k, v in written.items()}
     figures = summary(result, args.resolution)

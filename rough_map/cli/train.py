@@ -24,11 +24,10 @@ model does not learn one sensor::
 the traverses take 9.4 GB of clouds). The card records the sha256 of the training
 features. The shipped model was fitted on data with ``66836b28...`` (the simulator and
 feature extraction of its card's date; it was since converted to the current model layout
-with every fitted number kept, see ``converted_from`` in its card). The simulator and
-feature extraction of this version give ``f3b4d0bd...``: a model trained on that differs a
-little (on ``rough-map simulate --course mixed --length 36 --seed 21``, raw accuracy 0.856
-against the shipped 0.849, filtered 0.993 for both). A later change to either gives other
-traverses, and so another hash and another model.
+with every fitted number kept, see ``converted_from`` in its card). This version's simulator
+builds courses longer than 50 m in 6 m tiles (bounded memory), so these 100 m traverses,
+their hash and a model trained on them differ from the shipped one's; so does any later
+change to the simulator or the feature extraction.
 """  # noqa: E501
 
 from __future__ import annotations

@@ -47,7 +47,7 @@ from rough_map.patch import PatchSpec
 
 log = logging.getLogger(__name__)
 
-__all__ = ["TiledMap"]
+__all__ = ["COUNTS", "LATEST", "TiledMap", "is_accumulator"]
 
 #: Value layers that are sums of observations (fused by addition).
 COUNTS = ("count", "far_count")
@@ -110,6 +110,8 @@ class TiledMap:
         self._tiles: dict[tuple[int, int], GridMap] = {}
         self._spilled: set[tuple[int, int]] = set()
         self.groups: tuple[str, ...] = ("near",)
+        self._template: list[tuple[str, Any]] | None = None
+        self._attrs: dict[str, Any] = {}
         self._own_dir = spill_dir is None
         self._dir = Path(
             tempfile.mkdtemp(prefix="rough_map_tiles_") if spill_dir is None else spill_dir
@@ -150,21 +152,35 @@ class TiledMap:
         )
 
     def _blank(self, geometry: GridGeometry) -> GridMap:
-        """A grid with the accumulator layers only (what fusion adds to)."""
-        grid = GridMap(geometry)
-        init_layers(
-            grid,
-            self.class_names,
-            level_names=self.level_names,
-            prior=self.prior,
-            groups=self.groups,
-        )
-        add_vote_layers(grid)
-        grid.add_layer(HEIGHT_LAYERS[0], units="m", fill=0.0, kind="internal")
-        grid.add_layer(HEIGHT_LAYERS[1], units="1", fill=0.0, kind="internal")
-        for name in grid.layers:
-            if not is_accumulator(grid, name):
-                grid.drop_layer(name)
+        """A grid with the accumulator layers only (what fusion adds to); their list is
+        worked out once (a scratch grid is made for every patch)."""
+        if self._template is None:
+            grid = GridMap(geometry)
+            init_layers(
+                grid,
+                self.class_names,
+                level_names=self.level_names,
+                prior=self.prior,
+                groups=self.groups,
+            )
+            add_vote_layers(grid)
+            grid.add_layer(HEIGHT_LAYERS[0], units="m", fill=0.0, kind="internal")
+            grid.add_layer(HEIGHT_LAYERS[1], units="1", fill=0.0, kind="internal")
+            for name in grid.layers:
+                if not is_accumulator(grid, name):
+                    grid.drop_layer(name)
+            self._template = [(n, grid.info(n)) for n in grid.layers]
+            self._attrs = dict(grid.attrs)
+        grid = GridMap(geometry, attrs=self._attrs)
+        for name, i in self._template:
+            grid.add_layer(
+                name,
+                units=i.units,
+                description=i.description,
+                fill=i.fill,
+                kind=i.kind,
+                categories=i.categories,
+            )
         return grid
 
     def tile(self, key: tuple[int, int]) -> GridMap:
@@ -189,6 +205,7 @@ class TiledMap:
         if group in self.groups:
             return
         self.groups = (*self.groups, group)
+        self._template = None
         for tile in self._tiles.values():
             init_layers(tile, self.class_names, groups=(group,))
             for name in tile.layers:
@@ -441,7 +458,14 @@ class TiledMap:
         geo = GridGeometry.covering(
             bounds, self.resolution, crs=self.geometry.crs, frame_id=self.geometry.frame_id
         )
-        return self._assemble(geo, None, consume=False)
+        part = self._blank(geo)  # the sums over the window, then its estimates
+        r_off = round(geo.origin[1] / self.resolution)
+        c_off = round(geo.origin[0] / self.resolution)
+        n = self.tile_cells
+        for key in self._keys_over(geo.bounds):
+            if key in self._tiles or key in self._spilled:
+                self._place(part, self.tile(key), key[0] * n - r_off, key[1] * n - c_off, n)
+        return self._estimates(part)
 
     def merged(self, margin: float = 1.0, attrs: dict[str, Any] | None = None) -> GridMap:
         """One :class:`GridMap` covering every fused patch plus ``margin`` m, with the

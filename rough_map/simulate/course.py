@@ -19,9 +19,9 @@ Each frame gets
 The true world is saved as ``world_truth.npz`` (heights, class map, spacing, origin): the
 heights as int16 steps of at most 10 um with a scale and an offset, the class map deflated
 (:mod:`rough_map.io.truth`). A course up to 50 m
-(:data:`~rough_map.simulate.world.WHOLE_LENGTH`) is built whole and its truth written whole
+(:data:`~rough_map.simulate.world_tiles.WHOLE_LENGTH`) is built whole and its truth written whole
 (:func:`~rough_map.io.truth.save_world`), exactly as before long courses were tiled. A
-longer one is built in 6 m tiles (:class:`~rough_map.simulate.world.WorldTiles`) as the
+longer one is built in 6 m tiles (:class:`~rough_map.simulate.world_tiles.WorldTiles`) as the
 rover drives on: the frames are made in runs of :data:`RUN_LENGTH` m, each on a window of
 the world that holds what its wheels, range sensor and cameras see, and the finished
 columns go to a truth file of the tiled layout
@@ -52,20 +52,17 @@ from rough_map.simulate.textures import TextureSet
 from rough_map.simulate.world import (
     CLASS_NAMES,
     COURSES,
-    TILE_LENGTH,
-    WHOLE_LENGTH,
     Defect,
     RoverGeometry,
     Segment,
-    WorldTiles,
     attitude,
     attitude_reach,
     build_world,
     course_layout,
     drive,
     drive_track,
-    is_tiled,
 )
+from rough_map.simulate.world_tiles import TILE_LENGTH, WHOLE_LENGTH, WorldTiles, is_tiled
 from rough_map.types import HeightField
 
 log = logging.getLogger(__name__)
@@ -235,7 +232,7 @@ def simulate(
         Show a progress bar on stderr.
     whole_length : float
         A course up to this long (m) is built in one piece (:func:`build_world`); a longer
-        one tile by tile (:class:`~rough_map.simulate.world.WorldTiles`), read in windows
+        one tile by tile (:class:`~rough_map.simulate.world_tiles.WorldTiles`), read in windows
         along the drive, and its truth written in tiles
         (:class:`~rough_map.io.truth.TiledWorldWriter`), so that memory does not grow
         with the length.
@@ -270,16 +267,14 @@ def simulate(
     every = max(1, int(image_every))
     start, end = segments[0].start, segments[-1].end - sensor.ahead - 0.5
 
-    def progress_bar(total: int) -> Any:
-        return tqdm(total=total, desc=f"simulate {course}", unit="frame", disable=not progress)
-
+    bar_args = {"desc": f"simulate {course}", "unit": "frame", "disable": not progress}
     if tiles is None:
         world = build_world(segments, defects, spacing=world_spacing, seed=seed, width=width)
         save_world(world, out / TRUTH_FILE)
         poses = drive(world, start, end, speed=speed, rate=rate, seed=seed)
         if camera is not None:
             camera.look_at(world)
-        bar = progress_bar(len(poses))
+        bar = tqdm(total=len(poses), **bar_args)
         frames = []
         for i, pose in enumerate(poses):
             frame = _record_frame(out, i, pose, world, sensor, rng, compress)
@@ -289,7 +284,7 @@ def simulate(
             bar.update()
     else:
         track = drive_track(start, end, speed=speed, rate=rate, seed=seed)
-        bar = progress_bar(len(track[0]))
+        bar = tqdm(total=len(track[0]), **bar_args)
         with TiledWorldWriter(
             out / TRUTH_FILE, tiles.shape, world_spacing, tiles.origin, CLASS_NAMES
         ) as writer:
