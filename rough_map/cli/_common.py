@@ -197,6 +197,27 @@ def jobs(text: str) -> int:
     return int(value)
 
 
+#: ``--near-far`` choices -> ``rough_map.workflow.analyse``'s ``near_far``.
+NEAR_FAR: dict[str, str | bool] = {"auto": "auto", "on": True, "off": False}
+
+
+def add_map_args(parser: argparse.ArgumentParser) -> None:
+    """``--resolution M`` and ``--near-far {auto,on,off}`` of the commands that map."""
+    parser.add_argument(
+        "--resolution",
+        type=positive_float("m"),
+        default=0.1,
+        metavar="M",
+        help="map cell size in m (default 0.1)",
+    )
+    parser.add_argument(
+        "--near-far",
+        choices=tuple(NEAR_FAR),
+        default="auto",
+        help="near-to-far from the stereo images (auto: when there are images)",
+    )
+
+
 def add_jobs_arg(parser: argparse.ArgumentParser) -> None:
     """``-j/--jobs N``: worker processes for the frames (joblib)."""
     parser.add_argument(

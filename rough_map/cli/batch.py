@@ -6,14 +6,14 @@ import argparse
 from pathlib import Path
 
 from rough_map.cli._common import (
+    NEAR_FAR,
     add_jobs_arg,
+    add_map_args,
     emit_json,
     existing_path,
-    positive_float,
     status,
     table,
 )
-from rough_map.cli.map import NEAR_FAR
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -44,19 +44,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="MODEL",
         help="terrain model: 'default' (shipped) or a .skops file (default: default)",
     )
-    p.add_argument(
-        "--resolution",
-        type=positive_float("m"),
-        default=0.1,
-        metavar="M",
-        help="map cell size in m (default 0.1)",
-    )
-    p.add_argument(
-        "--near-far",
-        choices=("auto", "on", "off"),
-        default="auto",
-        help="near-to-far from the stereo images (auto: when there are images)",
-    )
+    add_map_args(p)
     p.add_argument("--no-png", action="store_true", help="skip the PNGs")
     p.add_argument(
         "--scheduler",

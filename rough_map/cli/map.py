@@ -6,11 +6,12 @@ import argparse
 from pathlib import Path
 
 from rough_map.cli._common import (
+    NEAR_FAR,
     add_jobs_arg,
+    add_map_args,
     add_model_arg,
     add_traverses_arg,
     emit_json,
-    positive_float,
     status,
     table,
 )
@@ -38,19 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--out", type=Path, required=True, metavar="DIR", help="output folder (created if needed)"
     )
-    p.add_argument(
-        "--resolution",
-        type=positive_float("m"),
-        default=0.1,
-        metavar="M",
-        help="map cell size in m (default 0.1)",
-    )
-    p.add_argument(
-        "--near-far",
-        choices=("auto", "on", "off"),
-        default="auto",
-        help="near-to-far from the stereo images (auto: when there are images)",
-    )
+    add_map_args(p)
     p.add_argument("--no-png", action="store_true", help="skip the PNGs")
     p.add_argument(
         "--state",
@@ -65,10 +54,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_jobs_arg(p)
     p.add_argument("--json", action="store_true", help="paths and figures as JSON on stdout")
     p.set_defaults(func=run)
-
-
-#: ``--near-far`` choices -> ``rough_map.workflow.analyse``'s ``near_far``.
-NEAR_FAR: dict[str, str | bool] = {"auto": "auto", "on": True, "off": False}
 
 
 def default_model() -> Path:

@@ -6,13 +6,14 @@ import argparse
 from pathlib import Path
 
 from rough_map.cli._common import (
+    NEAR_FAR,
     add_jobs_arg,
+    add_map_args,
     add_model_arg,
     add_traverses_arg,
-    positive_float,
     status,
 )
-from rough_map.cli.map import NEAR_FAR, default_model
+from rough_map.cli.map import default_model
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -36,19 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--out", type=Path, required=True, metavar="DIR", help="folder for index.html and figures"
     )
     add_model_arg(p, required=False)
-    p.add_argument(
-        "--resolution",
-        type=positive_float("m"),
-        default=0.1,
-        metavar="M",
-        help="map cell size in m (default 0.1)",
-    )
-    p.add_argument(
-        "--near-far",
-        choices=("auto", "on", "off"),
-        default="auto",
-        help="near-to-far from the stereo images (auto: when there are images)",
-    )
+    add_map_args(p)
     add_jobs_arg(p)
     p.set_defaults(func=run)
 

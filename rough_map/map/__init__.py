@@ -5,8 +5,11 @@
 conventions; :mod:`rough_map.map.footprints` finds the cells of a vehicle's patch;
 :mod:`rough_map.map.layers` defines the fused layers and computes their estimates;
 :mod:`rough_map.map.fusion` fuses the patches of a traverse and far-field predictions into
-them. :mod:`rough_map.map.near_far` (imported on its own: it needs OpenCV and
-scikit-learn) learns the look of the near field and predicts the far field.
+them; :mod:`rough_map.map.tiles` holds a map of any extent in lattice tiles kept on disk
+when far from the vehicle (:class:`~rough_map.map.tiles.TiledMap`), and
+:mod:`rough_map.map.state` their sums in one file. :mod:`rough_map.map.near_far` (imported
+on its own: it needs OpenCV and scikit-learn) learns the look of the near field and
+predicts the far field.
 """
 
 from rough_map.errors import EmptyMapWarning

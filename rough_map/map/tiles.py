@@ -156,13 +156,7 @@ class TiledMap:
         worked out once (a scratch grid is made for every patch)."""
         if self._template is None:
             grid = GridMap(geometry)
-            init_layers(
-                grid,
-                self.class_names,
-                level_names=self.level_names,
-                prior=self.prior,
-                groups=self.groups,
-            )
+            self._init_layers(grid)
             add_vote_layers(grid)
             grid.add_layer(HEIGHT_LAYERS[0], units="m", fill=0.0, kind="internal")
             grid.add_layer(HEIGHT_LAYERS[1], units="1", fill=0.0, kind="internal")
@@ -173,15 +167,17 @@ class TiledMap:
             self._attrs = dict(grid.attrs)
         grid = GridMap(geometry, attrs=self._attrs)
         for name, i in self._template:
-            grid.add_layer(
-                name,
-                units=i.units,
-                description=i.description,
-                fill=i.fill,
-                kind=i.kind,
-                categories=i.categories,
-            )
+            _copy_layer(grid, name, i)
         return grid
+
+    def _init_layers(self, grid: GridMap) -> None:
+        init_layers(
+            grid,
+            self.class_names,
+            level_names=self.level_names,
+            prior=self.prior,
+            groups=self.groups,
+        )
 
     def tile(self, key: tuple[int, int]) -> GridMap:
         """The tile ``key``: from memory, read back from disk, or new."""
@@ -488,13 +484,7 @@ class TiledMap:
         """The estimate layers over ``geo``, computed tile by tile (the sums stay in the
         tiles; with ``consume`` each tile goes back to disk once placed)."""
         grid = GridMap(geo, attrs=attrs)
-        init_layers(
-            grid,
-            self.class_names,
-            level_names=self.level_names,
-            prior=self.prior,
-            groups=self.groups,
-        )
+        self._init_layers(grid)
         for name in grid.layers:
             if grid.info(name).kind == "internal":
                 grid.drop_layer(name)
@@ -516,23 +506,8 @@ class TiledMap:
         """The estimate layers of one tile (a new grid; the tile is left as it is)."""
         est = GridMap(tile.geometry, attrs=dict(tile.attrs))
         for name in tile.layers:
-            info = tile.info(name)
-            est.add_layer(
-                name,
-                units=info.units,
-                description=info.description,
-                fill=info.fill,
-                kind=info.kind,
-                categories=info.categories,
-                data=tile[name],
-            )
-        init_layers(
-            est,
-            self.class_names,
-            level_names=self.level_names,
-            prior=self.prior,
-            groups=self.groups,
-        )
+            _copy_layer(est, name, tile.info(name), tile[name])
+        self._init_layers(est)
         update_estimates(est)
         add_elevation_layer(est)
         for name in est.layers:
@@ -552,14 +527,7 @@ class TiledMap:
         src = (slice(gr0 - r0, gr1 - r0), slice(gc0 - c0, gc1 - c0))
         for name in tile.layers:
             if name not in grid:
-                info = tile.info(name)
-                grid.add_layer(
-                    name,
-                    units=info.units,
-                    description=info.description,
-                    fill=info.fill,
-                    kind=info.kind,
-                )
+                _copy_layer(grid, name, tile.info(name))
             grid[name][dst] = tile[name][src]
 
     def close(self) -> None:
@@ -586,3 +554,16 @@ def _jsonable(attrs: dict[str, Any]) -> dict[str, Any]:
         elif isinstance(v, tuple | list) and all(isinstance(x, str | int | float) for x in v):
             out[k] = list(v)
     return out
+
+
+def _copy_layer(grid: GridMap, name: str, info: Any, data: Any = None) -> None:
+    """Add layer ``name`` to ``grid`` as ``info`` (a LayerInfo) describes it."""
+    grid.add_layer(
+        name,
+        units=info.units,
+        description=info.description,
+        fill=info.fill,
+        kind=info.kind,
+        categories=info.categories,
+        data=data,
+    )
