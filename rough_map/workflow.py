@@ -334,17 +334,13 @@ def write_outputs(
     dict of str to Path
         What was written, by kind.
     """
-    from tqdm import tqdm
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     grid = result.map
     written = export_map(grid, out, name="map", png=False, gridmap_bag=gridmap_bag)
     if png:
-        layers = [n for n in grid.layers if grid.info(n).kind != "internal"]
-        for layer in tqdm(layers, desc="PNG", unit="layer", disable=not progress):
-            for name, path in write_pngs(grid, out, "map", layers=[layer]).items():
-                written[f"png_{name}"] = path
+        for name, path in write_pngs(grid, out, "map", progress=progress).items():
+            written[f"png_{name}"] = path
     written.update(write_tables(result, out))
     if state and result.mapper is not None:
         written["state"] = result.mapper.save_state(out / "map_state.npz")
