@@ -201,3 +201,19 @@ def test_cli_rejects_bad_jobs(small_traverse: Path, tmp_path: Path, capsys, valu
     assert main(["map", str(small_traverse), "--out", str(tmp_path / "m"), "-j", value]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "-j/--jobs" in err[0] and value in err[0]
+
+
+def test_state_keeps_the_far_field(imaged_traverse: Path, model, tmp_path: Path) -> None:
+    """Near-to-far predictions fused into the map travel in its state, whole: a batch of
+    this one traverse has every far-field prediction of its map."""
+    result = analyse(imaged_traverse, model, near_far=True)
+    assert result.mapper is not None and "far_count" in result.map
+    state = result.mapper.save_state(tmp_path / "s.npz")
+    tiles = TiledMap.open_saved(state)
+    tiles.add_saved(state)
+    again = tiles.merged()
+    tiles.close()
+    assert again["far_count"].sum() == result.map["far_count"].sum() > 0
+    assert again["count"].sum() == result.map["count"].sum()
+    seen = np.isfinite(again["far_class"])
+    assert seen.sum() == np.isfinite(result.map["far_class"]).sum()

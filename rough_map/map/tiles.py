@@ -258,7 +258,23 @@ class TiledMap:
 
     def add_layers_from(self, part: GridMap, names: Sequence[str]) -> None:
         """Add layers ``names`` of a lattice-aligned grid (sums; latest times by maximum)
-        into the tiles, e.g. the far-field accumulators fused into a merged map."""
+        into the tiles, e.g. the far-field accumulators fused into a merged map; the map
+        grows to cover the cells where they hold data."""
+        used = np.zeros(part.shape, dtype=bool)
+        for name in names:
+            if name not in LATEST:
+                used |= part[name] != 0
+        if used.any():
+            rows, cols = np.flatnonzero(used.any(axis=1)), np.flatnonzero(used.any(axis=0))
+            res, (x0, y0) = self.resolution, part.geometry.origin
+            self._grow(
+                (
+                    x0 + cols[0] * res,
+                    y0 + rows[0] * res,
+                    x0 + (cols[-1] + 1) * res,
+                    y0 + (rows[-1] + 1) * res,
+                )
+            )
         self._add_grid(part, names)
 
     def _add_grid(self, part: GridMap, names: Sequence[str] | None = None) -> None:
