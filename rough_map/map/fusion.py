@@ -33,11 +33,13 @@ from rough_map.map.layers import (
     level_indices,
     update_estimates,
 )
+from rough_map.map.state import HEIGHT_LAYERS
 from rough_map.patch import PatchSpec
 
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "changed_layers",
     "fuse_cell_probabilities",
     "fuse_patch",
     "fuse_traverse",
@@ -451,3 +453,27 @@ def _log_fused(n: int, valid: NDArray[np.bool_], grid: GridMap, resolution: floa
             grid.shape,
             resolution,
         )
+
+
+def changed_layers(layers: Sequence[str], observation: dict[str, Any]) -> list[str]:
+    """The layers that fusing ``observation`` (:func:`rough_map.map.fusion.fuse_patch`'s
+    keywords) can change: the others stay zero in a scratch grid and need no adding."""
+    roughness = math.isfinite(observation.get("R", math.nan))
+    counted = observation.get("count", True)
+    out = []
+    for name in layers:
+        if name.startswith(("evidence_", "far_")):
+            keep = observation.get("probs") is not None and name.startswith("evidence_")
+        elif name.startswith("votes_"):
+            keep = math.isfinite(observation.get("level", math.nan))
+        elif name in ("count", "last_seen"):
+            keep = (
+                bool(counted) if name == "count" else math.isfinite(observation.get("t", math.nan))
+            )
+        elif name in HEIGHT_LAYERS:  # heights are added on their own
+            keep = False
+        else:  # the roughness sums
+            keep = roughness
+        if keep:
+            out.append(name)
+    return out

@@ -31,7 +31,7 @@ from rough_map._files import PathLike
 from rough_map.config import Crs
 from rough_map.errors import FileFormatError, InputError
 from rough_map.map.footprints import patch_corners
-from rough_map.map.fusion import add_vote_layers, fuse_patch
+from rough_map.map.fusion import add_vote_layers, changed_layers, fuse_patch
 from rough_map.map.grid import GridMap
 from rough_map.map.grid_geometry import GridGeometry
 from rough_map.map.layers import LEVEL_NAMES, init_layers, update_estimates
@@ -253,7 +253,7 @@ class TiledMap:
             scratch, x, y, yaw, spec=self.spec, grow=False, update=False, **observation
         )
         if cells.size:
-            self._add_grid(scratch, _changed(scratch.layers, observation))
+            self._add_grid(scratch, changed_layers(scratch.layers, observation))
         return int(cells.shape[0])
 
     def add_layers_from(self, part: GridMap, names: Sequence[str]) -> None:
@@ -583,27 +583,3 @@ def _copy_layer(grid: GridMap, name: str, info: Any, data: Any = None) -> None:
         categories=info.categories,
         data=data,
     )
-
-
-def _changed(layers: Sequence[str], observation: dict[str, Any]) -> list[str]:
-    """The layers that fusing ``observation`` (:func:`rough_map.map.fusion.fuse_patch`'s
-    keywords) can change: the others stay zero in a scratch grid and need no adding."""
-    roughness = math.isfinite(observation.get("R", math.nan))
-    counted = observation.get("count", True)
-    out = []
-    for name in layers:
-        if name.startswith(("evidence_", "far_")):
-            keep = observation.get("probs") is not None and name.startswith("evidence_")
-        elif name.startswith("votes_"):
-            keep = math.isfinite(observation.get("level", math.nan))
-        elif name in ("count", "last_seen"):
-            keep = (
-                bool(counted) if name == "count" else math.isfinite(observation.get("t", math.nan))
-            )
-        elif name in HEIGHT_LAYERS:
-            keep = False
-        else:  # the roughness sums
-            keep = roughness
-        if keep:
-            out.append(name)
-    return out
