@@ -145,6 +145,8 @@ def map_traverse_files(job: BatchJob) -> dict[str, bytes]:
             n_jobs=job.n_jobs,
         )
         write_outputs(result, tmp, png=job.png)
+        if result.mapper is not None:
+            result.mapper.close()  # its tiles on disk
         marker = {
             "traverse": job.name,
             "fingerprint": fingerprint(job),

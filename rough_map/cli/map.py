@@ -82,6 +82,8 @@ def run(args: argparse.Namespace) -> int:
         state=args.state,
         progress=args.progress,
     )
+    if result.mapper is not None:
+        result.mapper.close()  # its tiles on disk
     paths = {k: str(v) for k, v in written.items()}
     figures = summary(result, args.resolution)
     if args.json:
