@@ -23,7 +23,6 @@ old folder or the new one, never half of one.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import os
@@ -37,6 +36,7 @@ from typing import Any
 
 from rough_map import __version__
 from rough_map._files import PathLike, atomic_output
+from rough_map.classify import sha256_file
 from rough_map.errors import InputError
 from rough_map.export import export_map
 from rough_map.io.traverse import find_traverse_file, load_traverse
@@ -103,14 +103,6 @@ class BatchResult:
     summaries: dict[str, dict[str, Any]]
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def _model_file(model: str) -> Path:
     return model_base() if model == "default" else Path(model)
 
@@ -121,8 +113,8 @@ def fingerprint(job: BatchJob) -> dict[str, Any]:
     model = _model_file(job.model)
     model_file = model if model.suffix == ".skops" else model.with_suffix(".skops")
     return {
-        "traverse_sha256": _sha256(find_traverse_file(job.traverse)),
-        "model_sha256": _sha256(model_file) if model_file.is_file() else job.model,
+        "traverse_sha256": sha256_file(find_traverse_file(job.traverse)),
+        "model_sha256": sha256_file(model_file) if model_file.is_file() else job.model,
         "resolution_m": job.resolution,
         "near_far": job.near_far,
         "png": job.png,

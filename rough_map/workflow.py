@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import logging
 import math
-import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -26,7 +25,7 @@ from rough_map.classify import (
     load_roughness_levels,
     load_terrain_model,
 )
-from rough_map.errors import EmptyMapWarning, InputError
+from rough_map.errors import InputError
 from rough_map.evaluation.near_far import far_field_accuracy
 from rough_map.evaluation.truth import truth_accuracy
 from rough_map.export import export_map
@@ -44,6 +43,7 @@ from rough_map.io.traverse import Traverse, load_traverse
 from rough_map.io.truth import World, traverse_truth
 from rough_map.map import GridMap, fuse_cell_probabilities
 from rough_map.map import near_far as n2f
+from rough_map.map.fusion import log_fused
 from rough_map.map.tiles import is_accumulator
 from rough_map.online import OnlineMapper
 from rough_map.patch import Extraction
@@ -180,7 +180,7 @@ def analyse(
     mapper.fuse_classes(prediction.filtered_proba if prediction is not None else None)
     grid = mapper.finish()
     grid.attrs["traverse"] = traverse.name
-    _log_map(features, grid, resolution)
+    log_fused(len(features), np.asarray(features.valid, dtype=bool), grid, resolution)
     result = TraverseAnalysis(traverse, features, prediction, grid, terrain_model, extraction)
     result.mapper = mapper
     has_images = any(f.left is not None for f in traverse.frames)
@@ -222,22 +222,6 @@ def _frame_pass(
         if features is not None:
             out = replace(out, row=features.row(out.index))
         mapper.add(out, jobs[out.index].pose, classes=False)
-
-
-def _log_map(features: FeatureTable, grid: GridMap, resolution: float) -> None:
-    n, valid = len(features), int(np.sum(features.valid))
-    if n == 0:
-        warnings.warn("the traverse has no frames: the map is all nodata", EmptyMapWarning, 3)
-    elif valid == 0:
-        warnings.warn(
-            f"none of the {n} frames has a valid patch: the map is all nodata",
-            EmptyMapWarning,
-            3,
-        )
-    else:
-        log.info(
-            "fused %d of %d frames into a %s-cell map at %g m", valid, n, grid.shape, resolution
-        )
 
 
 def _load_model(name: PathLike) -> TerrainModel:

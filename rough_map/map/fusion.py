@@ -43,6 +43,7 @@ __all__ = [
     "fuse_cell_probabilities",
     "fuse_patch",
     "fuse_traverse",
+    "log_fused",
 ]
 
 
@@ -393,7 +394,7 @@ def fuse_traverse(
     update_estimates(grid)
     if callable(levels):
         apply_levels(grid, levels)
-    _log_fused(n, valid, grid, resolution)
+    log_fused(n, valid, grid, resolution)
     return grid
 
 
@@ -433,17 +434,22 @@ def _traverse_map(
     )
 
 
-def _log_fused(n: int, valid: NDArray[np.bool_], grid: GridMap, resolution: float) -> None:
-    """Log what :func:`fuse_traverse` fused, or warn (at its caller) that nothing was."""
+def log_fused(
+    n: int, valid: NDArray[np.bool_], grid: GridMap, resolution: float, stacklevel: int = 3
+) -> None:
+    """Log what a traverse's fusion fused, or warn (at the caller of the function calling
+    this one, with the default ``stacklevel``) that nothing was."""
     if n == 0:
         warnings.warn(
-            "the traverse has no frames: the map is all nodata", EmptyMapWarning, stacklevel=3
+            "the traverse has no frames: the map is all nodata",
+            EmptyMapWarning,
+            stacklevel=stacklevel,
         )
     elif not valid.any():
         warnings.warn(
             f"none of the {n} frames has a valid patch: the map is all nodata",
             EmptyMapWarning,
-            stacklevel=3,
+            stacklevel=stacklevel,
         )
     else:
         log.info(
