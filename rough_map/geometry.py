@@ -15,6 +15,7 @@ angles compose as ``Rz @ Ry @ Rx``).
 
 from __future__ import annotations
 
+import math
 from typing import Any, Protocol
 
 import numpy as np
@@ -25,7 +26,10 @@ from rough_map.errors import InputError
 __all__ = [
     "CAMERA_AXES_IN_VEHICLE",
     "PinholeCamera",
+    "check_angle",
+    "compensate_tilt",
     "ground_to_pixel",
+    "levelling_rotation",
     "pixel_to_ground",
     "pose_matrix",
     "rotation_matrix",
@@ -212,3 +216,47 @@ def ground_to_pixel(
     cam = (p - transform[:3, 3]) @ transform[:3, :3]  # R^T (p - t), row-wise
     z = np.where(cam[..., 2] > 0.01, cam[..., 2], np.nan)
     return calib.fx * cam[..., 0] / z + calib.cx, calib.fy * cam[..., 1] / z + calib.cy
+
+
+def check_angle(name: str, value: float) -> float:
+    """``value`` as a float, or :class:`InputError` unless it is an angle within +-pi/2 rad."""
+    value = float(value)
+    if not math.isfinite(value) or abs(value) > math.pi / 2:
+        raise InputError(f"{name} must be an angle in rad within +-pi/2, got {value!r}")
+    return value
+
+
+def levelling_rotation(normal: np.ndarray) -> np.ndarray:
+    """The smallest rotation that turns ``normal`` into +z (no yaw is introduced)."""
+    n = np.asarray(normal, dtype=float)
+    n = n / np.linalg.norm(n)
+    axis = np.cross(n, [0.0, 0.0, 1.0])
+    s = np.linalg.norm(axis)
+    c = float(n[2])
+    if s < 1e-15:
+        return np.eye(3)
+    k = axis / s
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + s * kx + (1 - c) * kx @ kx
+
+
+def compensate_tilt(points: np.ndarray, roll: float, pitch: float) -> np.ndarray:
+    """Rotate vehicle-frame points into the gravity-aligned frame (paper Eq. 11).
+
+    Parameters
+    ----------
+    points : ndarray, shape (N, 3)
+        Points in m in the vehicle frame.
+    roll, pitch : float
+        Vehicle roll and pitch in rad (e.g. from the IMU).
+
+    Returns
+    -------
+    ndarray, shape (N, 3)
+        ``R_v^w @ p`` for every point.
+    """
+    rot = rotation_matrix(check_angle("roll", roll), check_angle("pitch", pitch))
+    pts = np.asarray(points, dtype=float)
+    if pts.ndim != 2 or pts.shape[1] != 3 or pts.shape[0] == 0:
+        raise InputError(f"points must have shape (N, 3) (x, y, z in m), got {pts.shape}")
+    return np.column_stack(transform_columns(pts, rot))

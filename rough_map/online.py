@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -45,7 +45,8 @@ from rough_map.config import StereoCalibration
 from rough_map.errors import InputError
 from rough_map.features import FeatureTable, FrameJob, FrameOutput, FramePass
 from rough_map.features.extract import feature_table
-from rough_map.features.frames import FeatureCollector, process_points
+from rough_map.features.frames import process_points
+from rough_map.features.traverse import FeatureCollector
 from rough_map.filter import discrete_bayes
 from rough_map.geometry import pose_matrix
 from rough_map.map.footprints import patch_corners
@@ -143,9 +144,7 @@ class OnlineMapper:
         if not (isinstance(window, int | float) and math.isfinite(window) and window > 0):
             raise InputError(f"window must be a radius > 0 in m, got {window!r}")
         self.model: TerrainModel | None = (
-            model
-            if model is None or isinstance(model, TerrainModel)
-            else load_terrain_model(model)
+            model if model is None or isinstance(model, TerrainModel) else load_terrain_model(model)
         )
         if extraction is None:
             extraction = Extraction.from_dict(
@@ -163,9 +162,7 @@ class OnlineMapper:
         levels = self.model.levels_ if self.model is not None else load_roughness_levels(None)
         self.level_names = tuple(levels.levels)
         self.level_thresholds = tuple(float(v) for v in levels.values())
-        self.classes = (
-            tuple(str(c) for c in self.model.classes_) if self.model is not None else ()
-        )
+        self.classes = tuple(str(c) for c in self.model.classes_) if self.model is not None else ()
         self.window = float(window)
         self.name = name
         self.tiles = TiledMap(
@@ -246,7 +243,14 @@ class OnlineMapper:
             raise InputError("a stereo pair needs the rig's calibration (calibration=...)")
         return stereo_to_cloud(left, right, self.settings.calibration, patch=self.extraction.patch)
 
-    def add(self, out: FrameOutput, pose: Sequence[float], *, classes: bool = True) -> FrameUpdate:
+    def add(
+        self,
+        out: FrameOutput,
+        pose: Sequence[float],
+        *,
+        classes: bool = True,
+        roughness: bool = True,
+    ) -> FrameUpdate:
         """Fuse a frame already processed (:func:`rough_map.features.iter_frames`).
 
         Parameters
@@ -258,6 +262,10 @@ class OnlineMapper:
         classes : bool
             Classify the frame, filter forward and fuse its posterior now (False: fuse only
             the roughness and heights, and the classes later with :meth:`fuse_classes`).
+        roughness : bool
+            Fuse the patch's R and w now (False: the patch is counted but its roughness
+            comes later, e.g. smoothed along the whole path, with
+            :meth:`fuse_classes`'s ``roughness``).
         """
         index = len(self._collect.rows)
         self._collect.add(out)
@@ -273,7 +281,10 @@ class OnlineMapper:
         touched = 0
         if row["valid"]:
             probs = posterior if classes else None
-            touched = self.tiles.fuse_patch(x, y, yaw, **_observation(row, probs, level))
+            observation = _observation(row, probs, level)
+            if not roughness:
+                observation["R"] = math.nan  # fused later (fuse_classes)
+            touched = self.tiles.fuse_patch(x, y, yaw, **observation)
         if out.heights is not None:
             h = out.heights
             self.tiles.add_heights(h.rows, h.cols, h.sums, h.counts)
@@ -336,11 +347,23 @@ class OnlineMapper:
         """The features table of the frames so far."""
         return self._collect.table()
 
-    def fuse_classes(self, proba: ArrayLike | None, *, levels: bool = True) -> None:
+    def fuse_classes(
+        self,
+        proba: ArrayLike | None,
+        *,
+        levels: bool = True,
+        roughness: Mapping[str, ArrayLike] | None = None,
+    ) -> None:
         """Fuse class probabilities computed over the whole run (e.g. smoothed), one row
         per frame added with ``classes=False`` (NaN rows: none; None: no classes), and the
-        frames' roughness levels."""
+        frames' roughness levels.
+
+        ``roughness`` gives the roughness of each frame computed over the whole run, for
+        frames added with ``roughness=False``: arrays ``R`` (m³/rad), ``w``, ``sigma_R``
+        (m³/rad) and ``sigma_w``, one value per frame (e.g. smoothed along the path,
+        :class:`rough_map.filter.RoughnessSmoother`); the levels then come from this R."""
         rows = self._collect.rows
+        extra = _per_frame(roughness, len(rows))
         p = (
             np.full((len(rows), len(self.classes)), np.nan)
             if proba is None
@@ -355,12 +378,13 @@ class OnlineMapper:
                 continue
             x, y, yaw = row["x"], row["y"], row["yaw"]
             probs = p[i] if self.classes and np.all(np.isfinite(p[i])) else None
+            rough = {k: float(v[i]) for k, v in extra.items()}
             level = math.nan
             if levels:
-                level = self._level(row)
-            if probs is None and not math.isfinite(level):
+                level = self._level({**row, **rough})
+            if probs is None and not math.isfinite(level) and not rough:
                 continue
-            self.tiles.fuse_patch(x, y, yaw, probs=probs, level=level, count=False)
+            self.tiles.fuse_patch(x, y, yaw, probs=probs, level=level, count=False, **rough)
             self.tiles.evict(x, y, self.window)
 
     def finish(self, *, margin: float = 1.0) -> GridMap:
@@ -389,6 +413,21 @@ class OnlineMapper:
     def close(self) -> None:
         """Remove the tiles kept on disk."""
         self.tiles.close()
+
+
+def _per_frame(roughness: Mapping[str, ArrayLike] | None, n: int) -> dict[str, NDArray[Any]]:
+    """The arrays ``R``, ``w``, ``sigma_R``, ``sigma_w`` of ``roughness``, checked (n each)."""
+    if roughness is None:
+        return {}
+    keys = ("R", "w", "sigma_R", "sigma_w")
+    missing = [k for k in keys if k not in roughness]
+    if missing:
+        raise InputError(f"roughness needs the arrays {list(keys)}; missing {missing}")
+    out = {k: np.asarray(roughness[k], dtype=float) for k in keys}
+    bad = [k for k, v in out.items() if v.shape != (n,)]
+    if bad:
+        raise InputError(f"roughness {bad[0]!r} needs one value per frame ({n},)")
+    return out
 
 
 def _observation(row: dict[str, Any], probs: NDArray[np.float64] | None, level: float) -> dict:

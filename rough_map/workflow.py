@@ -38,7 +38,8 @@ from rough_map.features import (
     iter_frames,
     write_features,
 )
-from rough_map.features.frames import traverse_pass
+from rough_map.features.traverse import traverse_pass
+from rough_map.filter import smooth_table
 from rough_map.io.traverse import Traverse, load_traverse
 from rough_map.io.truth import World, traverse_truth
 from rough_map.map import GridMap, fuse_cell_probabilities
@@ -50,7 +51,11 @@ from rough_map.patch import Extraction
 
 log = logging.getLogger(__name__)
 
+#: What the map's roughness layers fuse (:func:`analyse`'s ``roughness``).
+ROUGHNESS_SOURCES = ("raw", "smoothed")
+
 __all__ = [
+    "ROUGHNESS_SOURCES",
     "TraverseAnalysis",
     "analyse",
     "coverage_report",
@@ -123,6 +128,7 @@ def analyse(
     resolution: float = 0.1,
     near_far: str | bool = "auto",
     far_weight: float = 0.3,
+    roughness: str = "raw",
     n_jobs: int = 1,
     progress: bool = False,
 ) -> TraverseAnalysis:
@@ -152,11 +158,26 @@ def analyse(
         images and there is a model).
     far_weight : float
         Weight of a far-field prediction relative to a near-field observation.
+    roughness : {"raw", "smoothed"}
+        The R and w the map fuses: each frame's own (``"raw"``, the default), or those
+        smoothed along the path (:class:`rough_map.filter.RoughnessSmoother`, the
+        features' ``R_smooth`` ... columns), fused in the second pass with the classes.
+        Raw is the default because the map already averages the ~70 % overlapping patches
+        of consecutive frames in each cell; fusing smoothed values would count that
+        along-track correlation twice (and make the map's sigma too small). The features
+        table gets the smoothed columns either way.
     n_jobs : int
         Worker processes for the frames (-1: every core); the result is the same for any.
     progress : bool
         Progress bars on stderr.
+
+    Raises
+    ------
+    InputError
+        An unknown ``roughness``; see also the stages.
     """
+    if roughness not in ROUGHNESS_SOURCES:
+        raise InputError(f"roughness must be 'raw' or 'smoothed'; got {roughness!r}")
     if not isinstance(traverse, Traverse):
         traverse = load_traverse(traverse)
     terrain_model: TerrainModel | None = (
@@ -173,11 +194,17 @@ def analyse(
         extraction=extraction,
         name=traverse.name,
     )
-    _frame_pass(traverse, mapper, features, n_jobs, progress)
+    _frame_pass(traverse, mapper, features, n_jobs, progress, roughness == "raw")
     if features is None:
         features = mapper.features()
     prediction = terrain_model.predict(features) if terrain_model is not None else None
-    mapper.fuse_classes(prediction.filtered_proba if prediction is not None else None)
+    # the frames the class filter leaves out as isolated defects stay out of the smoothing
+    defect = None if prediction is None or prediction.mode == "forward" else prediction.defect
+    features = smooth_table(features, defect=defect)
+    mapper.fuse_classes(
+        prediction.filtered_proba if prediction is not None else None,
+        roughness=_smoothed(features) if roughness == "smoothed" else None,
+    )
     grid = mapper.finish()
     grid.attrs["traverse"] = traverse.name
     log_fused(len(features), np.asarray(features.valid, dtype=bool), grid, resolution)
@@ -203,6 +230,7 @@ def _frame_pass(
     features: FeatureTable | None,
     n_jobs: int,
     progress: bool,
+    roughness: bool = True,
 ) -> None:
     """Every frame through the mapper: features (unless given) and heights, classes later."""
     jobs = frame_jobs(traverse)
@@ -221,7 +249,19 @@ def _frame_pass(
     for out in outputs:
         if features is not None:
             out = replace(out, row=features.row(out.index))
-        mapper.add(out, jobs[out.index].pose, classes=False)
+        mapper.add(out, jobs[out.index].pose, classes=False, roughness=roughness)
+
+
+def _smoothed(features: FeatureTable) -> dict[str, np.ndarray]:
+    """The smoothed roughness of the features table, as :meth:`OnlineMapper.fuse_classes`
+    takes it (sigma_R in m³/rad from the standard deviation of ln R)."""
+    R = np.asarray(features["R_smooth"], dtype=float)
+    return {
+        "R": R,
+        "w": np.asarray(features["w_smooth"], dtype=float),
+        "sigma_R": R * np.asarray(features["sigma_lnR_smooth"], dtype=float),
+        "sigma_w": np.asarray(features["sigma_w_smooth"], dtype=float),
+    }
 
 
 def _load_model(name: PathLike) -> TerrainModel:

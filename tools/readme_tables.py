@@ -119,4 +119,49 @@ def accuracy_table(log: Callable[[str], None]) -> str:
     return "\n".join(rows) + "\n"
 
 
-TABLES: dict[str, Callable[[Callable[[str], None]], str]] = {"accuracy": accuracy_table}
+def density_table(log: Callable[[str], None]) -> str:
+    """The same ground at every density (``tests/test_density.py`` measures and checks it):
+    synthetic power-law surfaces against the exact reading, and the CAPTIF scan against its
+    own 50-points-per-cell reading."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    import numpy as np
+    import test_density as d
+
+    def cell(values: list[float]) -> str:
+        return " / ".join(f"{v:+.2f}" for v in values)
+
+    rows = [
+        "| points per 8 mm cell | grid (`--spacing auto`) | median ln(R/R_exact), "
+        "w = -2.0 / -2.4 / -2.8 | median w - w_exact | median abs ln(R/R_exact) |",
+        "|---|---|---|---|---|",
+    ]
+    for per_cell, auto in ((50, False), (12, False), (4, False), (2, True), (1, True), (0.5, True)):
+        log(f"density: {per_cell} points per cell")
+        errs = [d.errors(w, per_cell, auto) for w in d.WAVINESS]
+        step = d.auto_spacing(int(per_cell * d.SPEC.n**2), d.SPEC).spacing if auto else 0.008
+        rows.append(
+            f"| {per_cell:g} | {step * 1e3:.1f} mm | "
+            + cell([float(np.median(e[:, 0])) for e in errs])
+            + " | "
+            + cell([float(np.median(e[:, 1])) for e in errs])
+            + " | "
+            + " / ".join(f"{float(np.median(np.abs(e[:, 0]))):.2f}" for e in errs)
+            + " |"
+        )
+    ref = d.captif_readings(50)
+    for per_cell in (100, 20, 12, 4, 2, 1, 0.5):
+        log(f"density: CAPTIF at {per_cell} points per cell")
+        got = d.captif_readings(per_cell)
+        rows.append(
+            f"| CAPTIF, {per_cell:g} | {np.median(got[:, 2]) * 1e3:.1f} mm | "
+            f"{np.median(got[:, 0] - ref[:, 0]):+.2f} (vs 50 points per cell) | "
+            f"{np.median(got[:, 1] - ref[:, 1]):+.2f} | "
+            f"{np.median(np.abs(got[:, 0] - ref[:, 0])):.2f} |"
+        )
+    return "\n".join(rows) + "\n"
+
+
+TABLES: dict[str, Callable[[Callable[[str], None]], str]] = {
+    "accuracy": accuracy_table,
+    "density": density_table,
+}

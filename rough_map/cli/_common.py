@@ -269,16 +269,33 @@ def add_mode_arg(parser: argparse.ArgumentParser, default: str | None = None) ->
     )
 
 
-def add_patch_args(parser: argparse.ArgumentParser) -> None:
-    """--spacing/--size/--ahead/--lateral, all in metres."""
+def _spacing(text: str) -> float | str:
+    """Argument type of ``--spacing``: ``auto`` or a grid step in m."""
+    return "auto" if text.strip().lower() == "auto" else positive_float("m")(text)
+
+
+def add_patch_args(parser: argparse.ArgumentParser, *, auto: bool = False) -> None:
+    """--spacing/--size/--ahead/--lateral, all in metres; with ``auto``, ``--spacing auto``
+    (the default there) coarsens the grid for sparse clouds."""
     g = parser.add_argument_group("patch of interest (vehicle frame, metres)")
-    g.add_argument(
-        "--spacing",
-        type=positive_float("m"),
-        default=DEFAULT_SPACING,
-        metavar="M",
-        help=f"grid step B in m (default {DEFAULT_SPACING})",
-    )
+    if auto:
+        g.add_argument(
+            "--spacing",
+            type=_spacing,
+            default="auto",
+            metavar="M|auto",
+            help=f"grid step B in m, or 'auto' (default): {DEFAULT_SPACING} m, or up to 4 "
+            "times coarser when the cloud has too few points per cell for it; the band "
+            "used is reported",
+        )
+    else:
+        g.add_argument(
+            "--spacing",
+            type=positive_float("m"),
+            default=DEFAULT_SPACING,
+            metavar="M",
+            help=f"grid step B in m (default {DEFAULT_SPACING})",
+        )
     g.add_argument(
         "--size",
         type=positive_float("m"),
@@ -319,14 +336,16 @@ def add_psd_args(parser: argparse.ArgumentParser) -> None:
 
 
 def patch_spec(args: argparse.Namespace) -> PatchSpec:
-    """The patch of the ``--ahead/--size/--spacing/--lateral`` options.
+    """The patch of the ``--ahead/--size/--spacing/--lateral`` options (``--spacing auto``:
+    the finest step, :data:`~rough_map.patch.DEFAULT_SPACING`).
 
     Raises
     ------
     InputError
         The options do not make a patch (fewer than 8 samples per profile).
     """
-    return PatchSpec(ahead=args.ahead, size=args.size, spacing=args.spacing, lateral=args.lateral)
+    spacing = DEFAULT_SPACING if args.spacing == "auto" else args.spacing
+    return PatchSpec(ahead=args.ahead, size=args.size, spacing=spacing, lateral=args.lateral)
 
 
 # --------------------------------------------------------------------------- output

@@ -30,10 +30,14 @@ def run_traverse(args: argparse.Namespace) -> int:
         use_imu=not args.no_tilt,
         method=args.method,
         subtract_noise=not args.keep_noise,
+        auto_spacing=args.spacing == "auto",
     )
     feats = traverse_features(
         args.source, extraction, source=args.points_from, n_jobs=args.jobs, progress=args.progress
     )
+    from rough_map.filter import smooth_table  # scikit-learn and filterpy: only here
+
+    feats = smooth_table(feats)  # R_smooth, w_smooth and their sigmas along the path
     write_features(feats, args.out)
     valid = feats.valid
     status(args, f"wrote {len(feats)} frames ({int((~valid).sum())} invalid) to {args.out}")

@@ -37,7 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=existing_path,
         help="a point cloud file, or a traverse folder (or its traverse.json)",
     )
-    add_patch_args(p)
+    add_patch_args(p, auto=True)
     p.add_argument(
         "--roll",
         type=finite_float("deg"),
@@ -89,8 +89,12 @@ def run_cloud(args: argparse.Namespace) -> int:
     from rough_map.features import cloud_roughness
     from rough_map.io.pointcloud import read_cloud
 
-    spec = patch_spec(args)
-    extraction = Extraction(patch=spec, method=args.method, subtract_noise=not args.keep_noise)
+    extraction = Extraction(
+        patch=patch_spec(args),
+        method=args.method,
+        subtract_noise=not args.keep_noise,
+        auto_spacing=args.spacing == "auto",
+    )
     t0 = time.perf_counter()
     points = read_cloud(args.source)
     t1 = time.perf_counter()
@@ -102,6 +106,7 @@ def run_cloud(args: argparse.Namespace) -> int:
         pitch=math.radians(args.pitch or 0.0) if tilt else None,
     )
     t2 = time.perf_counter()
+    spec = grid.spec  # the step used (--spacing auto may have coarsened it)
     timing_ms = {"load": 1e3 * (t1 - t0), "process": 1e3 * (t2 - t1)}
     result = {
         "file": str(args.source),
@@ -134,8 +139,12 @@ def run_cloud(args: argparse.Namespace) -> int:
             f"{grid.points_per_cell:.1f} points per cell ({grid.gridding})",
         ],
         ["band", f"{rough.omega[0]:.2f} to {rough.omega[-1]:.1f} rad/m"],
-        ["R", f"{rough.R:.3e} m³/rad  (sigma {rough.sigma_R:.2e})  ISO {rough.iso_class}"],
-        ["w", f"{rough.w:.3f}  (sigma {rough.sigma_w:.3f})"],
+        [
+            "R",
+            f"{rough.R:.3e} m³/rad  (sigma {rough.sigma_R:.2e}, se of ln R {rough.se_lnR:.2f})"
+            f"  ISO {rough.iso_class}",
+        ],
+        ["w", f"{rough.w:.3f}  (sigma {rough.sigma_w:.3f}, se {rough.se_w:.3f})"],
         ["rms", f"{rough.rms * 1e3:.2f} mm"],
         ["profiles", f"{rough.n_profiles} used, {rough.n_dropped} dropped"],
         [

@@ -40,6 +40,16 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--out", type=Path, required=True, metavar="DIR", help="output folder (created if needed)"
     )
     add_map_args(p)
+    p.add_argument(
+        "--roughness",
+        choices=("raw", "smoothed"),
+        default="raw",
+        help="R and w the map fuses: each frame's own (raw, the default: the map already "
+        "averages the overlapping patches in each cell, so fusing values smoothed along the "
+        "path would count that correlation twice), or smoothed along the path by the "
+        "Kalman smoother (the R_smooth, w_smooth columns of features.csv, which are "
+        "written either way; isolated defects such as a manhole do not show then)",
+    )
     p.add_argument("--no-png", action="store_true", help="skip the PNGs")
     p.add_argument(
         "--state",
@@ -71,6 +81,7 @@ def run(args: argparse.Namespace) -> int:
         args.model or default_model(),
         resolution=args.resolution,
         near_far=near_far,
+        roughness=args.roughness,
         n_jobs=args.jobs,
         progress=args.progress,
     )

@@ -17,7 +17,7 @@ refer to Reina et al., *Mind the ground*.
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +25,7 @@ import numpy as np
 
 from rough_map import iso8608
 from rough_map._files import atomic_output
+from rough_map.errors import InputError
 from rough_map.export.layout import MapPanel, data_view, draw_map_panels
 from rough_map.export.profiles import LEVEL_COLOURS, class_colour
 from rough_map.patch import PatchSpec
@@ -93,6 +94,7 @@ def roughness_along_path(
     *,
     labels: Sequence[str] | None = None,
     defects: np.ndarray | None = None,
+    smoothed: Mapping[str, np.ndarray] | None = None,
     title: str = "",
 ) -> Path:
     """R (log scale, m³/rad) and w along the path (m) with 1-sigma bands (Figs. 7, 9, 12).
@@ -100,6 +102,12 @@ def roughness_along_path(
     ISO 8608 class centres A-H are drawn as reference lines on the R panel; the true or
     predicted labels, if given, shade the background; frames flagged in ``defects`` (bool
     per frame, isolated defects such as a manhole) are marked on the R curve.
+
+    ``smoothed``, if given, holds the roughness smoothed along the path, one value per
+    frame, as the features table's columns ``R_smooth`` (m³/rad), ``w_smooth``,
+    ``sigma_lnR_smooth`` and ``sigma_w_smooth``
+    (:class:`rough_map.filter.RoughnessSmoother`): it is drawn over the raw curves with its
+    ±1σ band (``R exp(±sigma_lnR)``); the raw curves are then thinner.
     """
     fig = _figure(9, 6.4)
     fig.set_layout_engine("constrained")
@@ -107,9 +115,13 @@ def roughness_along_path(
     ax2 = fig.add_subplot(2, 1, 2, sharex=ax1)
     d = np.asarray(distance, float)
     ok = np.isfinite(R) & np.isfinite(w)
-    _r_panel(ax1, d, R, sigma_R, ok, defects)
+    smooth = _smoothed(smoothed, d.size)
+    raw_lw = 1.2 if smooth is None else 0.7
+    _r_panel(ax1, d, R, sigma_R, ok, defects, raw_lw)
     ax2.fill_between(d, w - sigma_w, w + sigma_w, where=ok, color="0.8")
-    ax2.plot(d[ok], w[ok], "k-", lw=1.2)
+    ax2.plot(d[ok], w[ok], "k-", lw=raw_lw)
+    if smooth is not None:
+        _smooth_curves(ax1, ax2, d, smooth)
     ax2.axhline(-2.0, color="tab:blue", lw=0.6, ls="--")
     ax2.set_ylabel("w")
     ax2.set_xlabel("distance along the path [m]")
@@ -130,6 +142,39 @@ def roughness_along_path(
     return _save(fig, path)
 
 
+#: Columns of the smoothed roughness :func:`roughness_along_path` draws.
+_SMOOTHED = ("R_smooth", "w_smooth", "sigma_lnR_smooth", "sigma_w_smooth")
+_SMOOTH_COLOUR = "tab:orange"
+
+
+def _smoothed(smoothed: Mapping[str, np.ndarray] | None, n: int) -> dict[str, np.ndarray] | None:
+    """The smoothed columns as float arrays of ``n`` values (None when not given)."""
+    if smoothed is None:
+        return None
+    missing = [k for k in _SMOOTHED if k not in smoothed]
+    if missing:
+        raise InputError(f"smoothed needs the columns {list(_SMOOTHED)}; missing {missing}")
+    out = {k: np.asarray(smoothed[k], dtype=float) for k in _SMOOTHED}
+    bad = [k for k, v in out.items() if v.shape != (n,)]
+    if bad:
+        raise InputError(f"smoothed {bad[0]!r} needs one value per frame ({n},)")
+    if not np.isfinite(out["R_smooth"]).any():
+        return None  # not smoothed (a table written without the smoother)
+    return out
+
+
+def _smooth_curves(ax1: Any, ax2: Any, d: np.ndarray, s: dict[str, np.ndarray]) -> None:
+    """The smoothed R and w with their ±1σ bands, over the raw curves."""
+    R, w = s["R_smooth"], s["w_smooth"]
+    sr, sw = s["sigma_lnR_smooth"], s["sigma_w_smooth"]
+    ok = np.isfinite(R) & np.isfinite(w) & np.isfinite(sr) & np.isfinite(sw)
+    band = dict(where=ok, color=_SMOOTH_COLOUR, alpha=0.25, lw=0)
+    ax1.fill_between(d, R * np.exp(-sr), R * np.exp(sr), label="smoothed ±1σ", **band)
+    ax1.plot(d[ok], R[ok], "-", color=_SMOOTH_COLOUR, lw=1.8, label="R smoothed")
+    ax2.fill_between(d, w - sw, w + sw, **band)
+    ax2.plot(d[ok], w[ok], "-", color=_SMOOTH_COLOUR, lw=1.8)
+
+
 def _r_panel(
     ax: Any,
     d: np.ndarray,
@@ -137,13 +182,14 @@ def _r_panel(
     sigma_R: np.ndarray,
     ok: np.ndarray,
     defects: np.ndarray | None,
+    lw: float = 1.2,
 ) -> None:
     """R with its band, the ISO 8608 class centres (named in the right margin), defects."""
     from matplotlib.transforms import blended_transform_factory
 
     lo = np.clip(R - sigma_R, R * 0.05, None)
     ax.fill_between(d, lo, R + sigma_R, where=ok, color="0.8", label="±1σ")
-    ax.plot(d[ok], R[ok], "k-", lw=1.2, label="R")
+    ax.plot(d[ok], R[ok], "k-", lw=lw, label="R")
     ax.set_yscale("log")
     ymin, ymax = (
         np.nanmin(lo[ok]) if ok.any() else 1e-6,

@@ -10,12 +10,15 @@ import numpy as np
 from rough_map._files import PathLike, atomic_output
 from rough_map.classify import TerrainPrediction
 from rough_map.features import FeatureTable
+from rough_map.features.table import SMOOTH_COLUMNS
 
 __all__ = ["LABEL_COLUMNS", "write_labels"]
 
 #: Columns of ``labels.csv``, in order: frame index, time (s), position x, y (m, world),
 #: distance along the path (m), valid patch, true label, raw class and its probability,
-#: filtered class and its probability, roughness level, isolated defect.
+#: filtered class and its probability, roughness level, isolated defect, and the roughness
+#: smoothed along the path (R in m³/rad, w, standard deviations of ln R and w; empty when
+#: the features were not smoothed).
 LABEL_COLUMNS = (
     "frame",
     "t",
@@ -30,6 +33,7 @@ LABEL_COLUMNS = (
     "filtered_p",
     "level",
     "defect",
+    *SMOOTH_COLUMNS,
 )
 
 
@@ -56,6 +60,8 @@ def write_labels(features: FeatureTable, prediction: TerrainPrediction, path: Pa
     raw_p = pred.raw_confidence
     filt_p = pred.filtered_confidence
     defect = pred.defect if pred.defect is not None else np.zeros(len(f), dtype=bool)
+    nan = np.full(len(f), np.nan)
+    smoothed = [np.asarray(f.columns.get(c, nan), dtype=float) for c in SMOOTH_COLUMNS]
     with atomic_output(path) as tmp, open(tmp, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(LABEL_COLUMNS)
@@ -75,6 +81,7 @@ def write_labels(features: FeatureTable, prediction: TerrainPrediction, path: Pa
                     f"{filt_p[i]:.4f}",
                     pred.level[i],
                     "true" if defect[i] else "false",
+                    *("" if not np.isfinite(v[i]) else f"{v[i]:.6g}" for v in smoothed),
                 ]
             )
     return path

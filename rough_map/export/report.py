@@ -24,6 +24,7 @@ from rough_map.export.report_html import write_index
 from rough_map.export.report_inputs import AnalysisResult, ReportTable
 from rough_map.export.tables import plain
 from rough_map.features import FeatureTable, label_summary
+from rough_map.features.table import SMOOTH_COLUMNS
 from rough_map.patch import PatchSpec, grid_points
 from rough_map.psd import PatchRoughness, patch_roughness, profile_psd
 
@@ -105,6 +106,7 @@ def _path_figure(
         out / "fig_path.png",
         labels=labels,
         defects=None if pred is None else pred.defect,
+        smoothed={k: f[k] for k in SMOOTH_COLUMNS if k in f.columns} or None,
         title=f"{result.traverse.name}: roughness along the path",
     )
     defects = (
@@ -114,7 +116,8 @@ def _path_figure(
     )
     caption = (
         "Roughness along the path: R (log scale, m³/rad, top) and w (bottom) of each frame's "
-        "patch against the distance travelled (m), with ±1σ bands. Dashed lines mark the ISO "
+        "patch against the distance travelled (m), with ±1σ bands; in orange, R and w "
+        "smoothed along the path (Kalman smoother, ±1σ). Dashed lines mark the ISO "
         f"8608 class centres A–H (w = −2); the background is shaded by the {which} class"
         f"{defects}. Paper Figs. 7, 9, 12."
     )

@@ -11,8 +11,9 @@ several traverses.
 * :mod:`rough_map.features.extract`: :func:`cloud_roughness` and :func:`frame_features`
   (one cloud);
 * :mod:`rough_map.features.frames`: one pass over a traverse's frames, each cloud read once,
-  on several processes (:func:`iter_frames`), :func:`traverse_features`,
-  :func:`feature_tables`;
+  on several processes (:func:`iter_frames`);
+* :mod:`rough_map.features.traverse`: :func:`traverse_features`, :func:`feature_tables`,
+  and :func:`resolve_spacing`, the one grid step of a traverse with ``spacing: auto``;
 * :mod:`rough_map.features.files`: :func:`write_features` / :func:`read_features` (plain
   CSV with its JSON metadata beside it, or Parquet).
 """
@@ -32,10 +33,8 @@ from rough_map.features.frames import (
     FrameOutput,
     FramePass,
     HeightSample,
-    feature_tables,
     frame_jobs,
     iter_frames,
-    traverse_features,
 )
 from rough_map.features.table import (
     COLUMN_UNITS,
@@ -44,6 +43,7 @@ from rough_map.features.table import (
     LabelSummary,
     label_summary,
 )
+from rough_map.features.traverse import feature_tables, resolve_spacing, traverse_features
 
 __all__ = [
     "COLUMNS",
@@ -66,6 +66,7 @@ __all__ = [
     "iter_frames",
     "label_summary",
     "read_features",
+    "resolve_spacing",
     "traverse_features",
     "write_features",
 ]

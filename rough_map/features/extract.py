@@ -32,7 +32,7 @@ from rough_map.features.table import (
     TEXT_COLUMNS,
     FeatureTable,
 )
-from rough_map.patch import Extraction, GriddedPatch, PatchSpec, grid_points
+from rough_map.patch import Extraction, GriddedPatch, PatchSpec, grid_points, points_in_patch
 from rough_map.psd import PatchRoughness, patch_roughness
 
 log = logging.getLogger(__name__)
@@ -66,7 +66,8 @@ def frame_features(
     extraction : Extraction or PatchSpec, optional
         Patch and estimator options (a PatchSpec: that patch with the default estimator);
         default the paper's. Its ``use_imu`` is not used: the tilt comes from ``roll`` and
-        ``pitch``.
+        ``pitch``. With ``auto_spacing`` the step is chosen for this cloud (a traverse
+        chooses one for all its frames instead: :func:`rough_map.features.traverse_features`).
     roll, pitch : float, optional
         Vehicle attitude in rad to compensate (paper Eq. 11); None: no compensation.
     min_points : int
@@ -79,7 +80,8 @@ def frame_features(
     row : dict
         The scalar columns (``valid``, ``reason``, ``n_points``, and when the patch could be
         gridded ``fill``, ``point_noise`` in m, ``noise_psd`` in m³/rad, ``level_angle`` in
-        rad, and when valid ``R`` in m³/rad, ``w``, ``sigma_R``, ``sigma_w``, ``rms`` in m,
+        rad, and when valid ``R`` in m³/rad, ``w``, ``sigma_R``, ``sigma_w``, ``se_lnR``,
+        ``se_w``, ``rms`` in m,
         ``iso_class``, ``R_lat``, ``w_lat``, ``fit_residual``).
     omega : ndarray or None
         Wavenumbers in rad/m of the spectrum (None when invalid).
@@ -87,10 +89,10 @@ def frame_features(
         Patch-mean PSD in m³/rad (None when invalid).
     """
     ex = _as_extraction(extraction)
-    spec = ex.patch
     row: dict[str, Any] = {"valid": False, "reason": "", "n_points": 0}
     try:
-        grid = grid_points(points, spec, roll=roll, pitch=pitch, min_points=min_points)
+        ex = ex.resolve(points_in_patch(points, ex.patch)) if ex.auto_spacing else ex
+        grid = grid_points(points, ex.patch, roll=roll, pitch=pitch, min_points=min_points)
     except RoughMapError as exc:
         row["reason"] = f"too few points: {exc}" if "points" in str(exc) else str(exc)
         return row, None, None
@@ -116,6 +118,8 @@ def frame_features(
         w=lon.w,
         sigma_R=lon.sigma_R,
         sigma_w=lon.sigma_w,
+        se_lnR=lon.se_lnR,
+        se_w=lon.se_w,
         rms=lon.rms,
         iso_class=lon.iso_class,
         R_lat=lat.R,
@@ -144,7 +148,8 @@ def cloud_roughness(
     points : ndarray, shape (N, 3)
         The cloud in the vehicle frame, m.
     extraction : Extraction or PatchSpec, optional
-        Patch and estimator options; default the paper's.
+        Patch and estimator options; default the paper's. With ``auto_spacing`` the grid
+        step is chosen for this cloud's density (the returned grid's ``spec`` says which).
     roll, pitch : float, optional
         Vehicle attitude in rad to compensate (paper Eq. 11); None: no compensation.
     min_points : int
@@ -156,6 +161,7 @@ def cloud_roughness(
         Too few points in the patch, or a patch the estimator refuses.
     """
     ex = _as_extraction(extraction)
+    ex = ex.resolve(points_in_patch(points, ex.patch)) if ex.auto_spacing else ex
     grid = grid_points(points, ex.patch, roll=roll, pitch=pitch, min_points=min_points)
     return grid, _fit(grid, ex, grid.heights)
 

@@ -25,6 +25,7 @@ from rough_map.features.table import (
     COLUMN_UNITS,
     COLUMNS,
     INT_COLUMNS,
+    OPTIONAL_COLUMNS,
     TEXT_COLUMNS,
     FeatureTable,
 )
@@ -145,12 +146,13 @@ def read_features(path: PathLike) -> FeatureTable:
         raw, meta = _read_csv(path)
     omega = np.asarray(meta["omega"], dtype=float)
     name = meta["name"]
-    missing = [c for c in COLUMNS if c not in raw]
+    missing = [c for c in COLUMNS if c not in raw and c not in OPTIONAL_COLUMNS]
     if missing:
         raise FileFormatError(path, f"missing columns {missing}", field=missing[0])
+    n_rows = len(next(iter(raw.values()))) if raw else 0
     cols: dict[str, np.ndarray] = {}
     for c in COLUMNS:
-        v = raw[c]
+        v = raw[c] if c in raw else np.full(n_rows, "", dtype=object)  # an older table
         try:
             if c in TEXT_COLUMNS:
                 cols[c] = np.array(["" if x is None else str(x) for x in v], dtype=object)

@@ -18,7 +18,7 @@ from __future__ import annotations
 import logging
 import math
 import os
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,15 +26,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from rough_map._files import PathLike
 from rough_map.config import StereoCalibration
 from rough_map.errors import FileFormatError, InputError
-from rough_map.features.extract import FrameResult, feature_table, frame_features
-from rough_map.features.files import read_features
-from rough_map.features.table import FeatureTable
+from rough_map.features.extract import FrameResult, frame_features
 from rough_map.geometry import rotation_matrix, transform_columns
 from rough_map.io.pointcloud import read_cloud
-from rough_map.io.traverse import Traverse, load_traverse
+from rough_map.io.traverse import Traverse
 from rough_map.patch import Extraction
 from rough_map.stereo import read_image, stereo_to_cloud
 
@@ -42,20 +39,17 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "SOURCES",
-    "FeatureCollector",
     "FrameJob",
     "FrameOutput",
     "FramePass",
     "HeightSample",
     "check_jobs",
-    "feature_tables",
     "frame_jobs",
     "iter_frames",
     "process_frame",
     "process_frames",
     "process_points",
-    "traverse_features",
-    "traverse_pass",
+    "read_points",
 ]
 
 #: Where the points of a frame come from: the frame's cloud, its stereo pair, or the cloud
@@ -223,7 +217,7 @@ def process_frame(job: FrameJob, settings: FramePass) -> FrameOutput:
     A frame without the points asked for (no stereo pair, an unreadable or missing file)
     gets an invalid row saying why.
     """
-    points, reason = _points(job, settings)
+    points, reason = read_points(job, settings)
     return process_points(points, job, settings, reason)
 
 
@@ -269,7 +263,7 @@ def _uses_stereo(job: FrameJob, settings: FramePass) -> bool:
     return settings.source == "stereo" or (settings.source == "auto" and job.cloud is None)
 
 
-def _points(job: FrameJob, settings: FramePass) -> tuple[NDArray[np.float64] | None, str]:
+def read_points(job: FrameJob, settings: FramePass) -> tuple[NDArray[np.float64] | None, str]:
     """The frame's points in the vehicle frame (m), or None and why not."""
     use_stereo = _uses_stereo(job, settings)
     try:
@@ -426,145 +420,3 @@ def _run_chunks(
         # The workers would idle for minutes holding their memory: the map's merge and
         # export come next, and need it more.
         executor.shutdown(wait=True)
-
-
-def traverse_features(
-    traverse: Traverse | PathLike,
-    extraction: Extraction | Mapping[str, Any] | None = None,
-    *,
-    source: str = "auto",
-    min_points: int = 2000,
-    min_fill: float = 0.7,
-    n_jobs: int = 1,
-    progress: bool = False,
-) -> FeatureTable:
-    """Features of every frame of a traverse.
-
-    Parameters
-    ----------
-    traverse : Traverse or path
-        A loaded traverse, or its folder / file.
-    extraction : Extraction or dict, optional
-        The patch, the IMU tilt compensation, the estimator and its noise floor
-        (:class:`rough_map.patch.Extraction`, or its ``to_dict`` form as a model records
-        it); default the paper's.
-    source : {"auto", "cloud", "stereo"}
-        Where the points come from: the frame's cloud, its stereo pair, or the cloud when
-        there is one ("auto").
-    min_points : int
-        Fewest points in the patch for a valid frame.
-    min_fill : float
-        Smallest fraction of filled cells for a valid frame.
-    n_jobs : int
-        Processes for the frames (-1: every core); the table is the same for any number.
-    progress : bool
-        Progress bar on stderr.
-
-    Raises
-    ------
-    InputError
-        An unknown ``source``, or ``"stereo"`` for a traverse without a calibration.
-    """
-    if not isinstance(traverse, Traverse):
-        traverse = load_traverse(traverse)
-    settings = traverse_pass(
-        traverse, extraction, source=source, min_points=min_points, min_fill=min_fill
-    )
-    collect = FeatureCollector(traverse.name, settings.extraction)
-    for out in iter_frames(
-        frame_jobs(traverse),
-        settings,
-        n_jobs=n_jobs,
-        progress=progress,
-        desc=f"features {traverse.name}",
-    ):
-        collect.add(out)
-    return collect.table()
-
-
-def traverse_pass(
-    traverse: Traverse,
-    extraction: Extraction | Mapping[str, Any] | None = None,
-    *,
-    source: str = "auto",
-    **options: Any,
-) -> FramePass:
-    """The :class:`FramePass` of a traverse (its calibration for stereo frames).
-
-    Raises
-    ------
-    InputError
-        An unknown ``source``, or ``"stereo"`` for a traverse without a calibration.
-    """
-    if source not in SOURCES:
-        raise InputError(f"source must be 'auto', 'cloud' or 'stereo', got {source!r}")
-    calibration = traverse.spec.calibration
-    if source == "stereo" and calibration is None:
-        raise InputError(f"{traverse.name}: stereo needs a 'calibration' in the traverse")
-    ex = Extraction.from_dict(extraction)
-    return FramePass(ex, source, calibration, **options)
-
-
-class FeatureCollector:
-    """Gathers :class:`FrameOutput` rows, in frame order, into a :class:`FeatureTable`."""
-
-    def __init__(self, name: str, extraction: Extraction) -> None:
-        self.name = name
-        self.extraction = extraction
-        self.rows: list[dict[str, Any]] = []
-        self.spectra: list[NDArray[np.float64] | None] = []
-        self.omega: NDArray[np.float64] | None = None
-
-    def add(self, out: FrameOutput) -> None:
-        """Append one frame's row and spectrum."""
-        if out.omega is not None:
-            self.omega = out.omega
-        if not out.row["valid"]:
-            log.info("frame %d invalid: %s", out.index, out.row["reason"])
-        self.rows.append(out.row)
-        self.spectra.append(out.psd)
-
-    def table(self) -> FeatureTable:
-        """The table of the frames added so far (logs how many are invalid)."""
-        n = len(self.rows)
-        n_invalid = sum(not r["valid"] for r in self.rows)
-        if n_invalid:
-            log.warning("%s: %d of %d frames have no valid patch", self.name, n_invalid, n)
-        return feature_table(self.rows, self.spectra, self.omega, self.extraction.patch, self.name)
-
-
-def feature_tables(
-    sources: Sequence[PathLike],
-    extraction: Extraction | Mapping[str, Any] | None = None,
-    *,
-    n_jobs: int = 1,
-    progress: bool = False,
-) -> list[FeatureTable]:
-    """Feature tables of traverses, computing them or reading them from files.
-
-    Parameters
-    ----------
-    sources : sequence of str or Path
-        Traverse folders or files (features are computed with ``extraction``), or features
-        tables (``.csv``/``.parquet`` written by ``rough-map features``, read as they are).
-    extraction : Extraction or dict, optional
-        The patch and estimator options (:class:`rough_map.patch.Extraction`, or its
-        ``to_dict`` form as a model records it); default the paper's.
-    n_jobs : int
-        Processes for the frames of each traverse (-1: every core).
-    progress : bool
-        Progress bars on stderr.
-
-    Returns
-    -------
-    list of FeatureTable
-    """
-    ex = Extraction.from_dict(extraction)
-    tables = []
-    for source in sources:
-        path = Path(source)
-        if path.is_file() and path.suffix.lower() in (".csv", ".parquet"):
-            tables.append(read_features(path))
-        else:
-            tables.append(traverse_features(path, ex, n_jobs=n_jobs, progress=progress))
-    return tables

@@ -14,7 +14,27 @@ from numpy.typing import ArrayLike
 from rough_map.errors import InputError
 from rough_map.iso8608 import iso_class
 
-__all__ = ["COLUMNS", "COLUMN_UNITS", "FeatureTable", "LabelSummary", "label_summary"]
+__all__ = [
+    "COLUMNS",
+    "COLUMN_UNITS",
+    "OPTIONAL_COLUMNS",
+    "SE_COLUMNS",
+    "SMOOTH_COLUMNS",
+    "FeatureTable",
+    "LabelSummary",
+    "label_summary",
+]
+
+#: Roughness smoothed along the path (:class:`rough_map.filter.RoughnessSmoother`): R in
+#: m³/rad, w, and the standard deviations of ln R and of w. NaN until a traverse's table is
+#: smoothed (``rough-map features`` and ``map`` do it; the features pass cannot, as it runs
+#: frame by frame).
+SMOOTH_COLUMNS = ("R_smooth", "w_smooth", "sigma_lnR_smooth", "sigma_w_smooth")
+#: Standard errors of a frame's ln R and w, with the correlation between its profiles
+#: (:attr:`rough_map.psd.PatchRoughness.se_lnR`).
+SE_COLUMNS = ("se_lnR", "se_w")
+#: Columns a table written before they existed may lack (read as NaN).
+OPTIONAL_COLUMNS = frozenset(SMOOTH_COLUMNS + SE_COLUMNS)
 
 #: Columns of a features table, in order (spectrum columns follow).
 COLUMNS = (
@@ -40,6 +60,8 @@ COLUMNS = (
     "point_noise",
     "noise_psd",
     "level_angle",
+    *SE_COLUMNS,
+    *SMOOTH_COLUMNS,
 )
 TEXT_COLUMNS = frozenset({"iso_class", "reason", "label"})
 BOOL_COLUMNS = frozenset({"valid"})
@@ -69,6 +91,12 @@ COLUMN_UNITS = {
     "point_noise": "m",
     "noise_psd": "m³/rad",
     "level_angle": "rad",
+    "se_lnR": "",  # standard error of ln R: a relative error of R
+    "se_w": "",
+    "R_smooth": "m³/rad",
+    "w_smooth": "",
+    "sigma_lnR_smooth": "",  # standard deviation of ln R: a relative error of R
+    "sigma_w_smooth": "",
 }
 
 

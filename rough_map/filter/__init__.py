@@ -29,6 +29,10 @@ The package, module by module:
   before a :class:`PathFilter`;
 * :mod:`~rough_map.filter.defects`: isolated defects along the path
   (:func:`isolated_spikes`, :class:`IsolatedSpikes`);
+* :mod:`~rough_map.filter.roughness`: :class:`RoughnessSmoother`, ln R and w smoothed along
+  the path by a Kalman filter and RTS smoother (filterpy) whose process noise is per metre,
+  with jumps where the ground changes; :func:`load_roughness_smoother` reads the shipped
+  ``configs/roughness_smoothing.yaml`` (learnt in :mod:`~rough_map.filter.roughness_fit`);
 * :mod:`~rough_map.filter.shipped`: :func:`make_terrain_model`, the
   :class:`~rough_map.classify.TerrainModel` with the path filter and the defect detector as
   rough_map ships it.
@@ -38,6 +42,13 @@ from rough_map.filter.defects import IsolatedSpikes, isolated_spikes
 from rough_map.filter.discrete_bayes import forward, predict, smooth, update, viterbi
 from rough_map.filter.path_filter import EMISSION_WEIGHT_GRID, PathFilter
 from rough_map.filter.posteriors import Posteriors
+from rough_map.filter.roughness import (
+    RoughnessSmoother,
+    RoughnessSmoothingConfig,
+    SmoothedRoughness,
+    load_roughness_smoother,
+    smooth_table,
+)
 from rough_map.filter.shipped import make_terrain_model, shipped_path_filter
 from rough_map.filter.switching import (
     DISTANCE_DECIMALS,
@@ -51,13 +62,18 @@ __all__ = [
     "IsolatedSpikes",
     "PathFilter",
     "Posteriors",
+    "RoughnessSmoother",
+    "RoughnessSmoothingConfig",
+    "SmoothedRoughness",
     "estimate_generator",
     "forward",
     "isolated_spikes",
+    "load_roughness_smoother",
     "make_terrain_model",
     "predict",
     "shipped_path_filter",
     "smooth",
+    "smooth_table",
     "transition_matrices",
     "update",
     "viterbi",

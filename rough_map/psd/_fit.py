@@ -26,6 +26,7 @@ from rough_map.psd._noise import check_floor, floor_correction
 from rough_map.psd._options import Options
 from rough_map.psd._regression import Projections, fit_plan, project, project_masked
 from rough_map.psd._result import PatchRoughness
+from rough_map.psd._uncertainty import standard_errors
 
 
 class Spectra(NamedTuple):
@@ -88,9 +89,9 @@ def fit(
     shift: np.ndarray
     if opt.subtract_noise:
         noise = check_floor(opt.noise_psd)
-        shift, mask = floor_correction(mean_psd, noise, plan.mask)
+        shift, weights = floor_correction(mean_psd, noise, plan.mask)
         table = leakage_table(seg_n, opt.window, opt.gridding)[:, :n_bins]
-        pr = project_masked(logp, plan.x, mask, table)
+        pr = project_masked(logp, plan.x, weights, table)
     else:
         shift = np.zeros((1, n_bins))
         pr = project(logp, plan)
@@ -117,7 +118,11 @@ def fit(
     mean_log = logp.mean(axis=1, dtype=np.float64) + adj
     resid = np.where(pr.mask, mean_log - bm[:, None] - wm[:, None] * plan.x[None, :], 0.0)
     fit_res = np.sqrt((resid * resid).sum(axis=1) / pr.mask.sum(axis=1))
-    return _results(spectra, opt, b, wv, mean_psd, pr.mask, fit_res, noise, spacing, n, n_dropped)
+    # Standard errors of the patch means, with the correlation between profiles.
+    se = standard_errors(b, wv, wm, pr, opt, seg_n=seg_n, bias=bias)
+    return _results(
+        spectra, opt, b, wv, mean_psd, pr.mask, fit_res, noise, spacing, n, n_dropped, se
+    )
 
 
 def _results(
@@ -132,9 +137,10 @@ def _results(
     spacing: float,
     n: int,
     n_dropped: int,
+    se: tuple[np.ndarray, np.ndarray],
 ) -> list[PatchRoughness]:
     """One :class:`PatchRoughness` per patch from the per-profile intercepts ``b`` and
-    slopes ``wv`` (patches, profiles)."""
+    slopes ``wv`` (patches, profiles) and the standard errors ``se`` of their means."""
     n_patch, m = b.shape
     wm = wv.mean(axis=1)
     bm = b.mean(axis=1)
@@ -148,6 +154,8 @@ def _results(
             w=float(wm[i]),
             sigma_R=float(R[i] * sb[i]),
             sigma_w=float(sw[i]),
+            se_lnR=float(se[0][i]),
+            se_w=float(se[1][i]),
             rms=float(spectra.rms[i]),
             iso_class=str(letters[i]),
             omega=spectra.omega,

@@ -28,6 +28,27 @@ def check_floor(noise_psd: float | None) -> float:
     return noise
 
 
+#: Half-width in bins of the running mean that smooths the patch-mean PSD before the floor
+#: is subtracted.
+SMOOTH_BINS = 3
+
+
+def _smooth_bins(psd: np.ndarray, half: int = SMOOTH_BINS) -> np.ndarray:
+    """Running mean over ``2 half + 1`` bins of each row (shorter windows at the ends).
+
+    The floor correction of a bin is a non-linear function of the patch-mean power there;
+    computed from one bin's scatter it would be biased (Jensen, and the selection of the
+    mask). Smoothing over neighbouring ordinates, where the spectrum changes by a few per
+    cent per bin, removes most of the scatter and little of the shape.
+    """
+    n = psd.shape[-1]
+    c = np.cumsum(np.concatenate([np.zeros(psd.shape[:-1] + (1,)), psd], axis=-1), axis=-1)
+    k = np.arange(n)
+    lo = np.maximum(k - half, 0)
+    hi = np.minimum(k + half + 1, n)
+    return (c[..., hi] - c[..., lo]) / (hi - lo)
+
+
 def floor_correction(
     mean_psd: np.ndarray, noise: float, base_mask: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -45,21 +66,30 @@ def floor_correction(
     Returns
     -------
     shift : ndarray, shape (patches, bins)
-        ``ln((P - noise) / P)``, added to every profile's log spectrum.
-    mask : ndarray of bool, shape (patches, bins)
-        ``base_mask`` without the bins where the noise is more than half the power.
+        ``ln((P - noise) / P)``, added to every profile's log spectrum (``P`` smoothed over
+        neighbouring ordinates).
+    weights : ndarray, shape (patches, bins)
+        Fit weight of each ordinate, ``((P - noise) / P)^2``: a log ordinate corrected for
+        a floor that takes a share ``1 - r`` of its power has ``1 / r^2`` times the variance
+        of a clean one. 0 outside ``base_mask`` and from the first bin where the noise
+        takes more than half the power.
 
     Raises
     ------
     PatchError
         Fewer than 3 bins are left in some patch.
     """
-    ratio = np.clip((mean_psd - noise) / mean_psd, 1e-12, None)
+    smooth = _smooth_bins(mean_psd)
+    ratio = np.clip((smooth - noise) / smooth, 1e-12, None)
     shift = np.log(ratio)  # per-bin log correction shared by all profiles of a patch
-    mask = base_mask[None, :] & (ratio >= MIN_SIGNAL_FRACTION)
+    # The band ends at the first wavenumber where the noise takes half the power: a mask
+    # that kept later bins wherever the spectrum happens to be high would keep only upward
+    # fluctuations there, which flattens w and lowers R.
+    above = ratio >= MIN_SIGNAL_FRACTION
+    mask = base_mask[None, :] & (np.cumprod(above | ~base_mask[None, :], axis=1) > 0)
     if (mask.sum(axis=1) < MIN_BINS).any():
         raise PatchError(
             "fewer than 3 wavenumbers above the noise floor; the patch is too smooth "
             f"for this sensor (noise floor {noise:.3g} m^3/rad)"
         )
-    return shift, mask
+    return shift, np.where(mask, ratio * ratio, 0.0)

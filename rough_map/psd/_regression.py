@@ -83,9 +83,11 @@ class Projections:
     mask : ndarray of bool, shape (patches, bins)
         Ordinates in each patch's fit.
     xm, sxx : ndarray, shape (patches,)
-        Per patch: mean of ``x`` over its mask, ``sum(xc^2)``.
+        Per patch: weighted mean of ``x`` over its mask, ``sum(wt (x - xm)^2)``.
     xc, avg : ndarray, shape (patches or 1, bins)
-        Per patch: centred ``x`` and averaging weights.
+        Per patch: weighted centred ``x`` (``wt (x - xm)``) and averaging weights
+        (``wt / sum(wt)``); the weights ``wt`` are 0 or 1 unless a noise floor was
+        subtracted.
     yx, ym : ndarray, shape (patches, profiles)
         Projections of each profile's log spectrum on ``xc`` and ``avg``.
     leak_x, leak_a : ndarray, shape (patches, len(W_GRID))
@@ -121,15 +123,18 @@ def project(logp: np.ndarray, plan: FitPlan) -> Projections:
 
 
 def project_masked(
-    logp: np.ndarray, x: np.ndarray, mask: np.ndarray, table: np.ndarray
+    logp: np.ndarray, x: np.ndarray, weights: np.ndarray, table: np.ndarray
 ) -> Projections:
-    """Projections with a mask per patch, shape (patches, bins); ``table`` is the leakage
-    table cut to the bins."""
-    wts = mask.astype(float)
+    """Projections of a weighted fit, with weights per patch and bin, shape (patches, bins)
+    (0: the bin is out of the fit; a boolean mask gives the plain fit); ``table`` is the
+    leakage table cut to the bins."""
+    wts = np.asarray(weights, dtype=float)
+    mask = wts > 0
     cnt = wts.sum(axis=1)
     xm = (wts @ x) / cnt
-    xc = (x[None, :] - xm[:, None]) * wts
-    sxx = (xc * xc).sum(axis=1)
+    dev = x[None, :] - xm[:, None]
+    xc = dev * wts
+    sxx = (xc * dev).sum(axis=1)  # sum of w (x - xm)^2
     avg = wts / cnt[:, None]
     return Projections(
         mask=mask,

@@ -22,6 +22,13 @@ class PatchRoughness:
         First-order standard deviation of R in m^3/rad (paper Eq. 8).
     sigma_w : float
         Standard deviation of the profile waviness.
+    se_lnR : float
+        Standard error of ``ln R`` (natural-log units): the uncertainty of the patch value
+        itself, allowing for the correlation between neighbouring profiles
+        (:mod:`rough_map.psd._uncertainty`); ``R * exp(+-1.96 se_lnR)`` is a 95 % interval.
+        At least ``sigma_lnR / sqrt(n_profiles)``; NaN for a single profile.
+    se_w : float
+        Standard error of ``w`` (the same way); 0 when the waviness was fixed.
     rms : float
         Rms of the detrended profiles in m.
     iso_class : str
@@ -58,6 +65,8 @@ class PatchRoughness:
     w: float
     sigma_R: float
     sigma_w: float
+    se_lnR: float
+    se_w: float
     rms: float
     iso_class: str
     omega: np.ndarray
@@ -87,6 +96,8 @@ class PatchRoughness:
             "w": self.w,
             "sigma_R": self.sigma_R,
             "sigma_w": self.sigma_w,
+            "se_lnR": self.se_lnR,
+            "se_w": self.se_w,
             "rms": self.rms,
             "iso_class": self.iso_class,
             "n_profiles": self.n_profiles,

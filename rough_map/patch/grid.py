@@ -1,181 +1,21 @@
-"""From a point cloud in the vehicle frame to the height grid of the patch of interest.
-
-The paper (section 3.2) looks at the patch 0.90 m x 0.90 m about 1 m ahead of the rover,
-sampled every B = 8 mm. :func:`grid_points` cuts a ``size`` x ``size`` metre square centred
-``ahead`` metres in front of the vehicle origin (and ``lateral`` metres to the left), and
-averages the z of the points falling in each ``spacing`` x ``spacing`` cell. Rows of the grid
-are longitudinal profiles (along x, the direction of travel); row 0 is the rightmost
-(most negative y) profile and column 0 the nearest sample.
-
-Tilt (paper Eq. 11): the cloud is expressed in the vehicle frame, which rolls and pitches
-with the terrain. :func:`compensate_tilt` rotates it into a gravity-aligned frame with the
-IMU's roll and pitch; the PSD is little affected by tilts of a few degrees, so this is
-optional.
-"""
+"""Gridding a cloud into the patch's height grid: :func:`grid_points`, :class:`GriddedPatch`."""
 
 from __future__ import annotations
 
 import dataclasses
 import logging
 import math
-from collections.abc import Mapping
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
 
 import numpy as np
 
 from rough_map.errors import InputError, PatchError
-from rough_map.geometry import rotation_matrix, transform_columns
+from rough_map.geometry import check_angle, levelling_rotation, rotation_matrix, transform_columns
+from rough_map.patch.spec import PatchSpec, _as_cloud
 
 log = logging.getLogger(__name__)
 
-#: The paper's patch: 112 samples of 8 mm = 0.896 m, centred 1 m ahead.
-DEFAULT_SPACING = 0.008
-DEFAULT_SIZE = 0.896
-DEFAULT_AHEAD = 1.0
-
 _CHUNK = 65536  # points per pass: keeps the temporaries in cache
-
-
-@dataclass(frozen=True)
-class PatchSpec:
-    """Where the patch of interest is and how it is sampled.
-
-    Attributes
-    ----------
-    ahead : float
-        Distance in m from the vehicle origin to the patch centre, along x.
-    size : float
-        Side of the square patch in m.
-    spacing : float
-        Grid step B in m.
-    lateral : float
-        Offset in m of the patch centre to the left (+y).
-    """
-
-    ahead: float = DEFAULT_AHEAD
-    size: float = DEFAULT_SIZE
-    spacing: float = DEFAULT_SPACING
-    lateral: float = 0.0
-
-    def __post_init__(self) -> None:
-        for name in ("size", "spacing"):
-            v = getattr(self, name)
-            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
-                raise InputError(f"{name} must be a positive length in m, got {v!r}")
-        for name in ("ahead", "lateral"):
-            v = getattr(self, name)
-            if not (isinstance(v, int | float) and math.isfinite(v)):
-                raise InputError(f"{name} must be a finite distance in m, got {v!r}")
-        if self.n < 8:
-            raise InputError(
-                f"size / spacing gives {self.n} samples per profile; need at least 8 "
-                f"(size={self.size} m, spacing={self.spacing} m)"
-            )
-
-    @property
-    def n(self) -> int:
-        """Samples per profile and number of profiles."""
-        return int(round(self.size / self.spacing))
-
-    @property
-    def x0(self) -> float:
-        """x in m of the near edge of the patch (vehicle frame)."""
-        return self.ahead - 0.5 * self.n * self.spacing
-
-    @property
-    def y0(self) -> float:
-        """y in m of the right edge of the patch (vehicle frame)."""
-        return self.lateral - 0.5 * self.n * self.spacing
-
-    def corners(self) -> np.ndarray:
-        """The four corners (x, y) in m in the vehicle frame, counter-clockwise."""
-        x1, y1 = self.x0 + self.n * self.spacing, self.y0 + self.n * self.spacing
-        return np.array([[self.x0, self.y0], [x1, self.y0], [x1, y1], [self.x0, y1]])
-
-
-#: Estimators of :func:`rough_map.psd.patch_roughness` an :class:`Extraction` may name.
-METHODS = ("unbiased", "paper")
-
-
-@dataclass(frozen=True)
-class Extraction:
-    """How the frames of a traverse become features: the patch and the estimator options.
-
-    The one extraction spec of rough_map. It is built once, from a model's record
-    (:meth:`from_dict` of ``TerrainModel.extraction_``) or from the command line, and passed
-    to the features, the workflow, near-to-far and the CLI; nothing else holds a default
-    patch.
-
-    Attributes
-    ----------
-    patch : PatchSpec
-        Where the patch is and how it is gridded (m).
-    use_imu : bool
-        Compensate the frames' IMU roll and pitch (paper Eq. 11).
-    method : {"unbiased", "paper"}
-        The PSD fit (:func:`rough_map.psd.patch_roughness`).
-    subtract_noise : bool
-        Subtract the noise floor estimated from the within-cell scatter.
-    """
-
-    patch: PatchSpec = field(default_factory=PatchSpec)
-    use_imu: bool = True
-    method: str = "unbiased"
-    subtract_noise: bool = True
-
-    def __post_init__(self) -> None:
-        if not isinstance(self.patch, PatchSpec):
-            raise InputError(f"patch must be a PatchSpec, got {type(self.patch).__name__}")
-        if self.method not in METHODS:
-            raise InputError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
-        for name in ("use_imu", "subtract_noise"):
-            if not isinstance(getattr(self, name), bool):
-                raise InputError(f"{name} must be true or false, got {getattr(self, name)!r}")
-
-    def to_dict(self) -> dict[str, Any]:
-        """The flat form a model and its card record: ``ahead, size, spacing, lateral`` (m),
-        ``use_imu``, ``method``, ``subtract_noise``."""
-        return {
-            "ahead": self.patch.ahead,
-            "size": self.patch.size,
-            "spacing": self.patch.spacing,
-            "lateral": self.patch.lateral,
-            "use_imu": self.use_imu,
-            "method": self.method,
-            "subtract_noise": self.subtract_noise,
-        }
-
-    @classmethod
-    def from_dict(cls, value: Mapping[str, Any] | Extraction | None) -> Extraction:
-        """An :class:`Extraction` from :meth:`to_dict`'s form (missing keys take the
-        defaults), an :class:`Extraction`, or None (the defaults).
-
-        Raises
-        ------
-        InputError
-            An unknown key or an invalid value.
-        """
-        if isinstance(value, Extraction):
-            return value
-        if value is None:
-            return cls()
-        if not isinstance(value, Mapping):
-            raise InputError(f"extraction must be a mapping, got {type(value).__name__}")
-        known = {"ahead", "size", "spacing", "lateral", "use_imu", "method", "subtract_noise"}
-        unknown = sorted(set(value) - known)
-        if unknown:
-            raise InputError(f"unknown extraction settings {unknown}; known: {sorted(known)}")
-        geometry = {k: value[k] for k in ("ahead", "size", "spacing", "lateral") if k in value}
-        options = {k: value[k] for k in ("use_imu", "method", "subtract_noise") if k in value}
-        return cls(patch=PatchSpec(**geometry), **options)
-
-    @property
-    def near_range(self) -> tuple[float, float]:
-        """Nearest and farthest x (m, vehicle frame) of the patch: the near field that
-        near-to-far learns from."""
-        x0 = self.patch.x0
-        return x0, x0 + self.patch.n * self.patch.spacing
 
 
 @dataclass(frozen=True, eq=False)
@@ -224,26 +64,18 @@ class GriddedPatch:
 
     @property
     def gridding(self) -> str:
-        """How :func:`rough_map.psd.patch_roughness` should read these heights.
+        """How :func:`rough_map.psd.patch_roughness` should read these heights: always
+        ``"cell_mean"``.
 
-        ``"cell_mean"`` when the cells average many points (4 or more on average), so the
-        grid is the surface seen through a B x B box filter; ``"point"`` for sparse clouds,
-        where a cell holds about one sample of the surface.
+        The mean of k points at random places in a cell is, on average over where they
+        fall, the mean of the surface over the cell, for any k: the grid is the surface
+        seen through a B x B box filter. Its scatter about that box mean (the surface's
+        variation within the cell and the sensor noise, divided by k, less what the
+        centroid correction removes) is independent from cell to cell, a white floor that
+        ``noise_psd`` estimates and the estimator subtracts. A grid of surface values at
+        the nodes (a synthetic or interpolated surface) is read with ``"point"`` instead.
         """
-        return "cell_mean" if self.points_per_cell >= 4 else "point"
-
-
-def _as_cloud(points: np.ndarray, name: str = "points") -> np.ndarray:
-    """Shape and dtype checks of an N x 3 cloud, without a pass over the values."""
-    try:
-        pts = np.asarray(points, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError(f"{name} must be a numeric N x 3 array of x, y, z in m") from None
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise InputError(f"{name} must have shape (N, 3) (x, y, z in m), got {pts.shape}")
-    if pts.shape[0] == 0:
-        raise InputError(f"{name} is empty (0 points)")
-    return pts
+        return "cell_mean"
 
 
 def check_points(points: np.ndarray, name: str = "points") -> np.ndarray:
@@ -256,46 +88,6 @@ def check_points(points: np.ndarray, name: str = "points") -> np.ndarray:
         log.debug("%s: dropping %d non-finite points", name, int((~finite).sum()))
         pts = pts[finite]
     return pts
-
-
-def _check_angle(name: str, value: float) -> float:
-    value = float(value)
-    if not math.isfinite(value) or abs(value) > math.pi / 2:
-        raise InputError(f"{name} must be an angle in rad within +-pi/2, got {value!r}")
-    return value
-
-
-def levelling_rotation(normal: np.ndarray) -> np.ndarray:
-    """The smallest rotation that turns ``normal`` into +z (no yaw is introduced)."""
-    n = np.asarray(normal, dtype=float)
-    n = n / np.linalg.norm(n)
-    axis = np.cross(n, [0.0, 0.0, 1.0])
-    s = np.linalg.norm(axis)
-    c = float(n[2])
-    if s < 1e-15:
-        return np.eye(3)
-    k = axis / s
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + s * kx + (1 - c) * kx @ kx
-
-
-def compensate_tilt(points: np.ndarray, roll: float, pitch: float) -> np.ndarray:
-    """Rotate vehicle-frame points into the gravity-aligned frame (paper Eq. 11).
-
-    Parameters
-    ----------
-    points : ndarray, shape (N, 3)
-        Points in m in the vehicle frame.
-    roll, pitch : float
-        Vehicle roll and pitch in rad (e.g. from the IMU).
-
-    Returns
-    -------
-    ndarray, shape (N, 3)
-        ``R_v^w @ p`` for every point.
-    """
-    rot = rotation_matrix(_check_angle("roll", roll), _check_angle("pitch", pitch))
-    return np.column_stack(transform_columns(_as_cloud(points), rot))
 
 
 def grid_points(
@@ -345,9 +137,7 @@ def grid_points(
     pts = _as_cloud(points)
     rot = None
     if roll is not None or pitch is not None:
-        rot = rotation_matrix(
-            _check_angle("roll", roll or 0.0), _check_angle("pitch", pitch or 0.0)
-        )
+        rot = rotation_matrix(check_angle("roll", roll or 0.0), check_angle("pitch", pitch or 0.0))
     angle = 0.0
     offset = None
     if level:
@@ -481,8 +271,11 @@ def _noise(mean: np.ndarray, counts: np.ndarray, szz: np.ndarray, spec: PatchSpe
         return math.nan, math.nan
     var_c = ss[ok] / (counts[ok] - 1) - slope_var[ok]
     dof = counts[ok] - 1
-    # Pool over cells, ignoring the 5 % most scattered (edges, outliers).
-    keep = var_c <= np.quantile(var_c, 0.95)
+    # Pool over cells, leaving out only gross outliers. Trimming a fixed share of the most
+    # scattered cells would bias the pool low by the tail of its chi-square law: 12 % at
+    # 4 points per cell, which flattens w and lowers R on sparse clouds.
+    med = float(np.median(var_c))
+    keep = var_c <= 50.0 * med if med > 0 else np.ones(var_c.shape, dtype=bool)
     var = float(np.sum(var_c[keep] * dof[keep]) / np.sum(dof[keep]))
     var = max(var, 0.0)
     inv_n = float(np.mean(1.0 / counts[counts > 0]))

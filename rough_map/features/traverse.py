@@ -1,0 +1,230 @@
+"""A traverse's features table, from one pass over its frames (:mod:`.frames`).
+
+:func:`traverse_features` runs the pass of :mod:`rough_map.features.frames` and gathers the
+rows (:class:`FeatureCollector`); :func:`traverse_pass` sets the pass up, and with
+``spacing: auto`` chooses one grid step for the whole traverse (:func:`resolve_spacing`);
+:func:`feature_tables` computes or reads the tables of several traverses.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from rough_map._files import PathLike
+from rough_map.errors import InputError, PatchError
+from rough_map.features.extract import feature_table
+from rough_map.features.files import read_features
+from rough_map.features.frames import (
+    SOURCES,
+    FrameOutput,
+    FramePass,
+    frame_jobs,
+    iter_frames,
+    read_points,
+)
+from rough_map.features.table import FeatureTable
+from rough_map.io.traverse import Traverse, load_traverse
+from rough_map.patch import Extraction, points_in_patch
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "SPACING_SAMPLES",
+    "FeatureCollector",
+    "feature_tables",
+    "resolve_spacing",
+    "traverse_features",
+    "traverse_pass",
+]
+
+
+def traverse_features(
+    traverse: Traverse | PathLike,
+    extraction: Extraction | Mapping[str, Any] | None = None,
+    *,
+    source: str = "auto",
+    min_points: int = 2000,
+    min_fill: float = 0.7,
+    n_jobs: int = 1,
+    progress: bool = False,
+) -> FeatureTable:
+    """Features of every frame of a traverse.
+
+    Parameters
+    ----------
+    traverse : Traverse or path
+        A loaded traverse, or its folder / file.
+    extraction : Extraction or dict, optional
+        The patch, the IMU tilt compensation, the estimator and its noise floor
+        (:class:`rough_map.patch.Extraction`, or its ``to_dict`` form as a model records
+        it); default the paper's.
+    source : {"auto", "cloud", "stereo"}
+        Where the points come from: the frame's cloud, its stereo pair, or the cloud when
+        there is one ("auto").
+    min_points : int
+        Fewest points in the patch for a valid frame.
+    min_fill : float
+        Smallest fraction of filled cells for a valid frame.
+    n_jobs : int
+        Processes for the frames (-1: every core); the table is the same for any number.
+    progress : bool
+        Progress bar on stderr.
+
+    Raises
+    ------
+    InputError
+        An unknown ``source``, or ``"stereo"`` for a traverse without a calibration.
+    """
+    if not isinstance(traverse, Traverse):
+        traverse = load_traverse(traverse)
+    settings = traverse_pass(
+        traverse, extraction, source=source, min_points=min_points, min_fill=min_fill
+    )
+    collect = FeatureCollector(traverse.name, settings.extraction)
+    for out in iter_frames(
+        frame_jobs(traverse),
+        settings,
+        n_jobs=n_jobs,
+        progress=progress,
+        desc=f"features {traverse.name}",
+    ):
+        collect.add(out)
+    return collect.table()
+
+
+def traverse_pass(
+    traverse: Traverse,
+    extraction: Extraction | Mapping[str, Any] | None = None,
+    *,
+    source: str = "auto",
+    **options: Any,
+) -> FramePass:
+    """The :class:`FramePass` of a traverse (its calibration for stereo frames).
+
+    Raises
+    ------
+    InputError
+        An unknown ``source``, or ``"stereo"`` for a traverse without a calibration.
+    """
+    if source not in SOURCES:
+        raise InputError(f"source must be 'auto', 'cloud' or 'stereo', got {source!r}")
+    calibration = traverse.spec.calibration
+    if source == "stereo" and calibration is None:
+        raise InputError(f"{traverse.name}: stereo needs a 'calibration' in the traverse")
+    ex = Extraction.from_dict(extraction)
+    settings = FramePass(ex, source, calibration, **options)
+    if ex.auto_spacing:
+        settings = dataclasses.replace(settings, extraction=resolve_spacing(traverse, settings))
+    return settings
+
+
+#: Frames, spread along a traverse, whose density chooses its grid step.
+SPACING_SAMPLES = 9
+
+
+def resolve_spacing(traverse: Traverse, settings: FramePass) -> Extraction:
+    """One grid step for every frame of a traverse (``spacing: auto``).
+
+    The median number of points over the patch of up to :data:`SPACING_SAMPLES` frames
+    spread along the traverse chooses it (:func:`rough_map.patch.auto_spacing`), so that
+    every row of the features table has the same wavenumbers. The spacing asked for is kept
+    when no sampled frame has points, or when they are too sparse for any step (the frames
+    are then marked invalid, each saying why).
+    """
+    ex = settings.extraction
+    jobs = frame_jobs(traverse)
+    picks = sorted({round(i) for i in np.linspace(0, len(jobs) - 1, SPACING_SAMPLES)})
+    counts = []
+    for i in picks if jobs else []:
+        points, _ = read_points(jobs[i], settings)
+        if points is not None:
+            counts.append(points_in_patch(points, ex.patch))
+    fixed = dataclasses.replace(ex, auto_spacing=False)
+    if not counts:
+        return fixed
+    try:
+        chosen = ex.resolve(int(np.median(counts)))
+    except PatchError as exc:
+        log.warning("%s: %s; keeping the %g mm grid", traverse.name, exc, ex.patch.spacing * 1e3)
+        return fixed
+    log.info(
+        "%s: %.1f mm grid, %.2f points per %.1f mm cell (median of %d frames)",
+        traverse.name,
+        chosen.patch.spacing * 1e3,
+        float(np.median(counts)) / ex.patch.n**2,
+        ex.patch.spacing * 1e3,
+        len(counts),
+    )
+    return chosen
+
+
+class FeatureCollector:
+    """Gathers :class:`FrameOutput` rows, in frame order, into a :class:`FeatureTable`."""
+
+    def __init__(self, name: str, extraction: Extraction) -> None:
+        self.name = name
+        self.extraction = extraction
+        self.rows: list[dict[str, Any]] = []
+        self.spectra: list[NDArray[np.float64] | None] = []
+        self.omega: NDArray[np.float64] | None = None
+
+    def add(self, out: FrameOutput) -> None:
+        """Append one frame's row and spectrum."""
+        if out.omega is not None:
+            self.omega = out.omega
+        if not out.row["valid"]:
+            log.info("frame %d invalid: %s", out.index, out.row["reason"])
+        self.rows.append(out.row)
+        self.spectra.append(out.psd)
+
+    def table(self) -> FeatureTable:
+        """The table of the frames added so far (logs how many are invalid)."""
+        n = len(self.rows)
+        n_invalid = sum(not r["valid"] for r in self.rows)
+        if n_invalid:
+            log.warning("%s: %d of %d frames have no valid patch", self.name, n_invalid, n)
+        return feature_table(self.rows, self.spectra, self.omega, self.extraction.patch, self.name)
+
+
+def feature_tables(
+    sources: Sequence[PathLike],
+    extraction: Extraction | Mapping[str, Any] | None = None,
+    *,
+    n_jobs: int = 1,
+    progress: bool = False,
+) -> list[FeatureTable]:
+    """Feature tables of traverses, computing them or reading them from files.
+
+    Parameters
+    ----------
+    sources : sequence of str or Path
+        Traverse folders or files (features are computed with ``extraction``), or features
+        tables (``.csv``/``.parquet`` written by ``rough-map features``, read as they are).
+    extraction : Extraction or dict, optional
+        The patch and estimator options (:class:`rough_map.patch.Extraction`, or its
+        ``to_dict`` form as a model records it); default the paper's.
+    n_jobs : int
+        Processes for the frames of each traverse (-1: every core).
+    progress : bool
+        Progress bars on stderr.
+
+    Returns
+    -------
+    list of FeatureTable
+    """
+    ex = Extraction.from_dict(extraction)
+    tables = []
+    for source in sources:
+        path = Path(source)
+        if path.is_file() and path.suffix.lower() in (".csv", ".parquet"):
+            tables.append(read_features(path))
+        else:
+            tables.append(traverse_features(path, ex, n_jobs=n_jobs, progress=progress))
+    return tables

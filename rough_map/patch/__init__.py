@@ -1,0 +1,49 @@
+"""From a point cloud in the vehicle frame to the height grid of the patch of interest.
+
+The paper (section 3.2) looks at the patch 0.90 m x 0.90 m about 1 m ahead of the rover,
+sampled every B = 8 mm. :func:`grid_points` cuts a ``size`` x ``size`` metre square centred
+``ahead`` metres in front of the vehicle origin (and ``lateral`` metres to the left), and
+averages the z of the points falling in each ``spacing`` x ``spacing`` cell. Rows of the grid
+are longitudinal profiles (along x, the direction of travel); row 0 is the rightmost
+(most negative y) profile and column 0 the nearest sample.
+
+Tilt (paper Eq. 11): the cloud is expressed in the vehicle frame, which rolls and pitches
+with the terrain. :func:`compensate_tilt` rotates it into a gravity-aligned frame with the
+IMU's roll and pitch; the PSD is little affected by tilts of a few degrees, so this is
+optional.
+"""
+
+from rough_map.geometry import compensate_tilt
+from rough_map.patch.grid import GriddedPatch, check_points, extract_patch, grid_points
+from rough_map.patch.spec import (
+    AUTO_STEPS,
+    DEFAULT_AHEAD,
+    DEFAULT_SIZE,
+    DEFAULT_SPACING,
+    METHODS,
+    MIN_POINTS_PER_CELL,
+    Extraction,
+    PatchSpec,
+    auto_spacing,
+    points_in_patch,
+    spacing_ladder,
+)
+
+__all__ = [
+    "AUTO_STEPS",
+    "DEFAULT_AHEAD",
+    "DEFAULT_SIZE",
+    "DEFAULT_SPACING",
+    "METHODS",
+    "MIN_POINTS_PER_CELL",
+    "Extraction",
+    "GriddedPatch",
+    "PatchSpec",
+    "auto_spacing",
+    "check_points",
+    "compensate_tilt",
+    "extract_patch",
+    "grid_points",
+    "points_in_patch",
+    "spacing_ladder",
+]

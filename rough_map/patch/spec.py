@@ -1,0 +1,295 @@
+"""The patch of interest and how a traverse is measured: :class:`PatchSpec`, the grid
+steps of ``spacing: auto`` (:func:`auto_spacing`) and :class:`Extraction`."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from rough_map.errors import InputError, PatchError
+
+log = logging.getLogger(__name__)
+
+#: The paper's patch: 112 samples of 8 mm = 0.896 m, centred 1 m ahead.
+DEFAULT_SPACING = 0.008
+DEFAULT_SIZE = 0.896
+DEFAULT_AHEAD = 1.0
+
+
+@dataclass(frozen=True)
+class PatchSpec:
+    """Where the patch of interest is and how it is sampled.
+
+    Attributes
+    ----------
+    ahead : float
+        Distance in m from the vehicle origin to the patch centre, along x.
+    size : float
+        Side of the square patch in m.
+    spacing : float
+        Grid step B in m.
+    lateral : float
+        Offset in m of the patch centre to the left (+y).
+    """
+
+    ahead: float = DEFAULT_AHEAD
+    size: float = DEFAULT_SIZE
+    spacing: float = DEFAULT_SPACING
+    lateral: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("size", "spacing"):
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
+                raise InputError(f"{name} must be a positive length in m, got {v!r}")
+        for name in ("ahead", "lateral"):
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and math.isfinite(v)):
+                raise InputError(f"{name} must be a finite distance in m, got {v!r}")
+        if self.n < 8:
+            raise InputError(
+                f"size / spacing gives {self.n} samples per profile; need at least 8 "
+                f"(size={self.size} m, spacing={self.spacing} m)"
+            )
+
+    @property
+    def n(self) -> int:
+        """Samples per profile and number of profiles."""
+        return int(round(self.size / self.spacing))
+
+    @property
+    def x0(self) -> float:
+        """x in m of the near edge of the patch (vehicle frame)."""
+        return self.ahead - 0.5 * self.n * self.spacing
+
+    @property
+    def y0(self) -> float:
+        """y in m of the right edge of the patch (vehicle frame)."""
+        return self.lateral - 0.5 * self.n * self.spacing
+
+    def corners(self) -> np.ndarray:
+        """The four corners (x, y) in m in the vehicle frame, counter-clockwise."""
+        x1, y1 = self.x0 + self.n * self.spacing, self.y0 + self.n * self.spacing
+        return np.array([[self.x0, self.y0], [x1, self.y0], [x1, y1], [self.x0, y1]])
+
+
+#: Fewest points per cell, on average over the patch, that :func:`auto_spacing` asks of a
+#: grid step: below about 2.5 a cell-mean grid has many empty cells and a sampling noise
+#: that drowns the top of the band.
+MIN_POINTS_PER_CELL = 2.5
+#: Steps of :func:`spacing_ladder`: the requested spacing times sqrt(2)^k, k = 0 ... 4.
+AUTO_STEPS = 5
+
+
+def spacing_ladder(spec: PatchSpec) -> list[PatchSpec]:
+    """The patches :func:`auto_spacing` chooses from, finest first.
+
+    Each is the same square as ``spec`` (same extent, so the same wavenumbers
+    ``2 pi k / L``) gridded about sqrt(2) times coarser than the one before: at 8 mm,
+    steps of 8, 11.2, 16, 22.4 and 32 mm (112, 80, 56, 40 and 28 samples).
+    """
+    extent = spec.n * spec.spacing
+    out: list[PatchSpec] = []
+    for k in range(AUTO_STEPS):
+        n = max(8, 2 * int(round(spec.n / (2 * math.sqrt(2) ** k))))
+        if out and n >= out[-1].n:
+            break
+        out.append(
+            PatchSpec(ahead=spec.ahead, size=extent, spacing=extent / n, lateral=spec.lateral)
+        )
+    return out
+
+
+def points_in_patch(points: np.ndarray, spec: PatchSpec) -> int:
+    """Points of an N x 3 cloud (vehicle frame, m) over the patch square, without tilt."""
+    pts = _as_cloud(points)
+    half = 0.5 * spec.n * spec.spacing
+    inside = np.abs(pts[:, 0] - spec.ahead) < half
+    inside &= np.abs(pts[:, 1] - spec.lateral) < half
+    return int(np.count_nonzero(inside))
+
+
+def auto_spacing(
+    n_points: int,
+    spec: PatchSpec | None = None,
+    *,
+    min_points_per_cell: float = MIN_POINTS_PER_CELL,
+) -> PatchSpec:
+    """The finest grid of :func:`spacing_ladder` that ``n_points`` points over the patch
+    fill with at least ``min_points_per_cell`` points per cell on average.
+
+    A sparse cloud (a lidar gives a few points per 8 mm cell at 1 m, or fewer than one)
+    leaves most cells of the 8 mm grid empty or with one point: the profiles break up and
+    the sampling noise of the cells swamps the top of the band. A coarser grid keeps the
+    same patch and the same low wavenumbers; its band ends lower, at ``pi / B``. R at
+    omega0 and w describe the same power law, so they stay comparable with the 8 mm
+    reading, with a larger uncertainty (fewer ordinates and profiles).
+
+    Parameters
+    ----------
+    n_points : int
+        Points over the patch square (:func:`points_in_patch`).
+    spec : PatchSpec, optional
+        The patch and its finest spacing; default the paper's.
+    min_points_per_cell : float
+        Fewest points per cell asked of the chosen grid.
+
+    Returns
+    -------
+    PatchSpec
+        ``spec`` itself when it is dense enough, else the coarser grid.
+
+    Raises
+    ------
+    PatchError
+        Even the coarsest step (4 times ``spec.spacing``) gets fewer points per cell.
+    """
+    spec = spec or PatchSpec()
+    if not (math.isfinite(min_points_per_cell) and min_points_per_cell > 0):
+        raise InputError(f"min_points_per_cell must be > 0, got {min_points_per_cell!r}")
+    ladder = spacing_ladder(spec)
+    for cand in ladder:
+        if n_points / cand.n**2 >= min_points_per_cell:
+            if cand is not ladder[0]:
+                log.info(
+                    "spacing auto: %.1f mm grid (%.2f points per %.1f mm cell); band "
+                    "%.1f to %.1f rad/m",
+                    cand.spacing * 1e3,
+                    n_points / spec.n**2,
+                    spec.spacing * 1e3,
+                    2 * math.pi / (cand.n * cand.spacing),
+                    math.pi / cand.spacing,
+                )
+            return cand
+    coarse = ladder[-1]
+    raise PatchError(
+        f"the cloud is too sparse for any grid: {n_points} points over the patch, "
+        f"{n_points / coarse.n**2:.2f} per {coarse.spacing * 1e3:.1f} mm cell (the coarsest "
+        f"step) where {min_points_per_cell:g} are needed"
+    )
+
+
+#: Estimators of :func:`rough_map.psd.patch_roughness` an :class:`Extraction` may name.
+METHODS = ("unbiased", "paper")
+
+
+@dataclass(frozen=True)
+class Extraction:
+    """How the frames of a traverse become features: the patch and the estimator options.
+
+    The one extraction spec of rough_map. It is built once, from a model's record
+    (:meth:`from_dict` of ``TerrainModel.extraction_``) or from the command line, and passed
+    to the features, the workflow, near-to-far and the CLI; nothing else holds a default
+    patch.
+
+    Attributes
+    ----------
+    patch : PatchSpec
+        Where the patch is and how it is gridded (m).
+    use_imu : bool
+        Compensate the frames' IMU roll and pitch (paper Eq. 11).
+    method : {"unbiased", "paper"}
+        The PSD fit (:func:`rough_map.psd.patch_roughness`).
+    subtract_noise : bool
+        Subtract the noise floor estimated from the within-cell scatter.
+    auto_spacing : bool
+        ``patch.spacing`` is the finest step: a cloud too sparse for it is gridded
+        coarser (:func:`auto_spacing`, :meth:`resolve`). A traverse chooses one step for
+        all its frames. Terrain models record a fixed step (False).
+    """
+
+    patch: PatchSpec = field(default_factory=PatchSpec)
+    use_imu: bool = True
+    method: str = "unbiased"
+    subtract_noise: bool = True
+    auto_spacing: bool = False
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.patch, PatchSpec):
+            raise InputError(f"patch must be a PatchSpec, got {type(self.patch).__name__}")
+        if self.method not in METHODS:
+            raise InputError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        for name in ("use_imu", "subtract_noise", "auto_spacing"):
+            if not isinstance(getattr(self, name), bool):
+                raise InputError(f"{name} must be true or false, got {getattr(self, name)!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        """The flat form a model and its card record: ``ahead, size, spacing, lateral`` (m),
+        ``use_imu``, ``method``, ``subtract_noise`` (and ``"spacing": "auto"`` when
+        :attr:`auto_spacing`)."""
+        return {
+            "ahead": self.patch.ahead,
+            "size": self.patch.size,
+            "spacing": "auto" if self.auto_spacing else self.patch.spacing,
+            "lateral": self.patch.lateral,
+            "use_imu": self.use_imu,
+            "method": self.method,
+            "subtract_noise": self.subtract_noise,
+        }
+
+    def resolve(self, n_points: int) -> Extraction:
+        """The extraction with a fixed step: ``self`` unless :attr:`auto_spacing`, else the
+        :func:`auto_spacing` step for ``n_points`` points over the patch square.
+
+        Raises
+        ------
+        PatchError
+            Too sparse for even the coarsest step.
+        """
+        if not self.auto_spacing:
+            return self
+        patch = auto_spacing(n_points, self.patch)
+        return dataclasses.replace(self, patch=patch, auto_spacing=False)
+
+    @classmethod
+    def from_dict(cls, value: Mapping[str, Any] | Extraction | None) -> Extraction:
+        """An :class:`Extraction` from :meth:`to_dict`'s form (missing keys take the
+        defaults), an :class:`Extraction`, or None (the defaults).
+
+        Raises
+        ------
+        InputError
+            An unknown key or an invalid value.
+        """
+        if isinstance(value, Extraction):
+            return value
+        if value is None:
+            return cls()
+        if not isinstance(value, Mapping):
+            raise InputError(f"extraction must be a mapping, got {type(value).__name__}")
+        known = {"ahead", "size", "spacing", "lateral", "use_imu", "method", "subtract_noise"}
+        unknown = sorted(set(value) - known)
+        if unknown:
+            raise InputError(f"unknown extraction settings {unknown}; known: {sorted(known)}")
+        geometry = {k: value[k] for k in ("ahead", "size", "spacing", "lateral") if k in value}
+        options = {k: value[k] for k in ("use_imu", "method", "subtract_noise") if k in value}
+        if geometry.get("spacing") == "auto":
+            del geometry["spacing"]
+            options["auto_spacing"] = True
+        return cls(patch=PatchSpec(**geometry), **options)
+
+    @property
+    def near_range(self) -> tuple[float, float]:
+        """Nearest and farthest x (m, vehicle frame) of the patch: the near field that
+        near-to-far learns from."""
+        x0 = self.patch.x0
+        return x0, x0 + self.patch.n * self.patch.spacing
+
+
+def _as_cloud(points: np.ndarray, name: str = "points") -> np.ndarray:
+    """Shape and dtype checks of an N x 3 cloud, without a pass over the values."""
+    try:
+        pts = np.asarray(points, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a numeric N x 3 array of x, y, z in m") from None
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise InputError(f"{name} must have shape (N, 3) (x, y, z in m), got {pts.shape}")
+    if pts.shape[0] == 0:
+        raise InputError(f"{name} is empty (0 points)")
+    return pts

@@ -1,0 +1,153 @@
+"""Continuous random surfaces for tests: an isotropic Gaussian field with a power-law spectrum.
+
+:func:`power_law_field` synthesises, by FFT, a periodic Gaussian height field over a domain
+much larger than a patch (say 8-16 m square), so that the long wavelengths that real ground
+has (trends, curvature, lateral correlation between neighbouring profiles) are there when a
+0.9 m patch is cut from it. It is written independently of :mod:`rough_map.psd`: the
+truth is the generating spectrum, not anything the estimator assumes.
+
+The field is the isotropic one whose straight profiles have the one-sided PSD
+``R (Omega / 1 rad/m)^w`` in m^3/rad: the two-sided 2-D spectral density is
+``S(k) = C |k|^(w - 1)`` with ``C = R / (2 I(w))`` and ``I(w) = integral over the real line
+of (1 + u^2)^((w - 1) / 2) du`` (:func:`rough_map.iso8608.surface_constant`), because a
+profile's PSD is the integral of ``S`` over the lateral wavenumber.
+
+Sampling. The grid rows (along x, the profiles) are band-limited at ``pi / spacing``: the
+field holds no wavenumber above the rows' Nyquist along x, so every row has exactly the PSD
+``R Omega^w`` up to ``pi / spacing`` and nothing aliases along the profile (the model of
+``gridding="point"``). Across the rows (along y) the field is the full continuous one
+sampled every ``spacing``: the lateral wavenumbers above ``pi / spacing`` are folded into
+the band (aliased) exactly as point samples of the continuous surface would fold them, so the
+covariance between rows j apart is that of the continuous field at lag ``j * spacing``, and
+the integral over ky of every column is the full integral. To get true point samples of a
+surface that is not band-limited along x either, synthesise at a finer spacing and take
+every q-th sample (:meth:`Field.sample` interpolates between the nodes).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+from scipy import ndimage
+
+from rough_map.iso8608 import surface_constant
+
+#: Folds of the lateral wavenumber summed explicitly on each side; the rest is an integral.
+_FOLDS = 6
+
+
+@dataclass(frozen=True)
+class Field:
+    """A periodic height field on a square grid.
+
+    Attributes
+    ----------
+    heights : ndarray, shape (ny, nx)
+        Heights in m; rows are profiles along x, row ``i`` is at ``y = i * spacing``.
+        Read-only (fields are cached).
+    spacing : float
+        Grid spacing in m.
+    R : float
+        Profile PSD at 1 rad/m, m^3/rad (the truth for the estimator).
+    w : float
+        Waviness (slope of the profile PSD in log-log), dimensionless.
+    """
+
+    heights: np.ndarray
+    spacing: float
+    R: float
+    w: float
+
+    @property
+    def size(self) -> tuple[float, float]:
+        """``(ly, lx)`` extent of the periodic domain in m."""
+        ny, nx = self.heights.shape
+        return ny * self.spacing, nx * self.spacing
+
+    def patches(self, n: int = 112, step: int | None = None) -> np.ndarray:
+        """Square ``n x n`` patches cut on a regular grid, ``step`` cells apart (default
+        ``n``: adjacent, not overlapping). Shape ``(count, n, n)``, a copy."""
+        step = n if step is None else int(step)
+        ny, nx = self.heights.shape
+        rows = range(0, ny - n + 1, step)
+        cols = range(0, nx - n + 1, step)
+        return np.stack([self.heights[r : r + n, c : c + n] for r in rows for c in cols])
+
+    def sample(self, x: np.ndarray, y: np.ndarray, order: int = 3) -> np.ndarray:
+        """Heights in m at points ``(x, y)`` in m, by spline interpolation of the grid
+        (cubic by default), wrapping around the periodic domain."""
+        coords = np.stack([np.asarray(y, float), np.asarray(x, float)]) / self.spacing
+        return ndimage.map_coordinates(self.heights, coords, order=order, mode="grid-wrap")
+
+
+def fold_spectrum(kx: np.ndarray, ky: np.ndarray, spacing: float, w: float) -> np.ndarray:
+    """``sum over a of |k + (0, 2 pi a / spacing)|^(w - 1)`` on the grid ``kx`` x ``ky``
+    (rad/m, ky within the band): the lateral folding of the unit-constant spectrum.
+
+    ``_FOLDS`` folds on each side are summed; the remaining tails are their integrals
+    (Euler-Maclaurin, with the first-order term in ``kx^2``), a few 1e-5 of the total.
+    """
+    period = 2 * math.pi / spacing
+    kx2 = (kx * kx)[None, :]
+    p = (w - 1.0) / 2.0
+    total = np.zeros((ky.size, kx.size))
+    for a in range(-_FOLDS, _FOLDS + 1):
+        k2 = kx2 + ((ky + a * period) ** 2)[:, None]
+        with np.errstate(divide="ignore"):
+            total += np.where(k2 > 0, k2, np.inf) ** p
+    for sign in (1.0, -1.0):
+        # sum over a > _FOLDS of f(ky + sign a P) ~ (1/P) integral from Y of f, Y as below.
+        y0 = ((_FOLDS + 0.5) * period + sign * ky)[:, None]
+        tail = y0**w / -w + p * kx2 * y0 ** (w - 2.0) / (2.0 - w)
+        total += tail / period
+    return total
+
+
+@lru_cache(maxsize=4)
+def power_law_field(n: int, spacing: float, R: float, w: float, seed: int) -> Field:
+    """A periodic ``n x n`` isotropic Gaussian field whose profiles have PSD ``R Omega^w``.
+
+    Parameters
+    ----------
+    n : int
+        Cells per side (even); the domain is ``n * spacing`` m square.
+    spacing : float
+        Grid spacing in m.
+    R : float
+        One-sided profile PSD at 1 rad/m, m^3/rad (ISO 8608 class A to D: about 2.5e-7
+        to 1.3e-4).
+    w : float
+        Waviness, negative (-2 for ISO roads; -2 to -3 for natural ground).
+    seed : int
+        Seed of the white noise.
+
+    Returns
+    -------
+    Field
+        Cached and read-only: the same arguments give the same array.
+
+    Notes
+    -----
+    Every row is a stationary Gaussian profile whose expected periodogram over the full
+    domain is ``R kx^w`` at each ``kx = 2 pi j / (n spacing)`` up to ``pi / spacing``
+    (the domain's discrete ky sum equals the integral up to ``exp(-kx * n * spacing)``).
+    The kx = 0 column (constant along a row) is kept: each row has its own mean.
+    """
+    if n % 2 or n < 8:
+        raise ValueError(f"n must be an even number of at least 8, got {n}")
+    if not (w < -1.0):
+        raise ValueError(f"w must be below -1 for the lateral sum to converge, got {w}")
+    const = R / (2.0 * surface_constant(w))
+    kx = 2 * np.pi * np.fft.rfftfreq(n, d=spacing)
+    ky = 2 * np.pi * np.fft.fftfreq(n, d=spacing)
+    s2 = const * fold_spectrum(kx, ky, spacing, w)
+    s2[0, 0] = 0.0
+    dk = (2 * np.pi / (n * spacing)) ** 2
+    amp = np.sqrt(s2 * dk * n * n)
+    white = np.random.default_rng(seed).standard_normal((n, n))
+    heights = np.fft.irfft2(np.fft.rfft2(white) * amp, s=(n, n))
+    heights.setflags(write=False)
+    return Field(heights, spacing, float(R), float(w))
