@@ -49,9 +49,22 @@ def make_traverse(work: Path, frames: int, ppc: float, seed: int = 5) -> Path:
     if not (base / "traverse.json").is_file():
         shutil.rmtree(base, ignore_errors=True)
         subprocess.run(
-            [sys.executable, "-m", "rough_map.cli.main", "simulate", "--out", str(base),
-             "--length", "50", "--no-images", "--points-per-cell", str(ppc),
-             "--seed", str(seed), "-q"],
+            [
+                sys.executable,
+                "-m",
+                "rough_map.cli.main",
+                "simulate",
+                "--out",
+                str(base),
+                "--length",
+                "50",
+                "--no-images",
+                "--points-per-cell",
+                str(ppc),
+                "--seed",
+                str(seed),
+                "-q",
+            ],
             check=True,
         )
     src = load_traverse(base)
@@ -124,8 +137,18 @@ def stages(folder: Path, sample: int) -> dict[str, float]:
 def run_map(folder: Path, out: Path, jobs: int) -> tuple[float, float]:
     """Wall time (s) of `rough-map map` and the peak of the summed RSS of its processes."""
     shutil.rmtree(out, ignore_errors=True)
-    cmd = [sys.executable, "-m", "rough_map.cli.main", "map", str(folder), "--out", str(out),
-           "-j", str(jobs), "-q"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "rough_map.cli.main",
+        "map",
+        str(folder),
+        "--out",
+        str(out),
+        "-j",
+        str(jobs),
+        "-q",
+    ]
     t0 = time.perf_counter()
     proc = psutil.Popen(cmd, stdout=subprocess.DEVNULL)
     peak = 0.0
@@ -207,11 +230,15 @@ def stereo(folder: Path, jobs: int) -> None:
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
     wall = time.perf_counter() - t0
     n = len(trav)
-    print(f"stereo: {n} pairs; decoding a pair on one core {decode * 1e3:.0f} ms "
-          f"({1 / decode:.1f} pairs/s)")
-    print(f"rough-map features --points-from stereo -j {jobs}: {wall:.1f} s wall, "
-          f"{n / wall:.1f} frames/s end to end (start-up included), x{n / wall / 16:.2f} the "
-          f"camera's 16 frames/s, x{n / wall * decode:.2f} the one-core decoding rate")
+    print(
+        f"stereo: {n} pairs; decoding a pair on one core {decode * 1e3:.0f} ms "
+        f"({1 / decode:.1f} pairs/s)"
+    )
+    print(
+        f"rough-map features --points-from stereo -j {jobs}: {wall:.1f} s wall, "
+        f"{n / wall:.1f} frames/s end to end (start-up included), x{n / wall / 16:.2f} the "
+        f"camera's 16 frames/s, x{n / wall * decode:.2f} the one-core decoding rate"
+    )
 
 
 def main() -> None:
@@ -255,12 +282,16 @@ def main() -> None:
     if args.json:
         print(json.dumps(result, indent=2))
         return
-    print(f"{len(paths)} frames of {n_points} points; floor (load, crop, grid, FFT; 1 core): "
-          f"{fl * 1e3:.2f} ms/frame, {fl * len(paths):.1f} s in all")
+    print(
+        f"{len(paths)} frames of {n_points} points; floor (load, crop, grid, FFT; 1 core): "
+        f"{fl * 1e3:.2f} ms/frame, {fl * len(paths):.1f} s in all"
+    )
     for k, v in st.items():
         print(f"  {k:<36} {v * 1e3:7.2f} ms/frame  x{v / fl:5.1f} floor")
-    print(f"rough-map map -j {args.jobs}: {wall:.1f} s wall, x{wall / (fl * len(paths)):.2f} "
-          f"the single-core floor; peak RSS of all its processes {peak:.0f} MB")
+    print(
+        f"rough-map map -j {args.jobs}: {wall:.1f} s wall, x{wall / (fl * len(paths)):.2f} "
+        f"the single-core floor; peak RSS of all its processes {peak:.0f} MB"
+    )
 
 
 if __name__ == "__main__":

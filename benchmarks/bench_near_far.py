@@ -26,6 +26,14 @@ For each traverse it prints
   of classes already learnt;
 * the time per frame: reading the image, tile features, predict, update (wall clock, the
   median over frames; the load average is printed because other processes slow it down).
+
+``--photos`` instead runs :func:`rough_map.map.near_far.run_traverse` (labels settled over
+3 frames) on flat worlds textured with scikit-image's CC0 ground photographs
+(:mod:`rough_map.simulate.photo_ground`; brick, gravel, grass, moon), in colour and in grey,
+with near labels lagging a change of ground by two frames and one wrong frame mid-way
+(``tests/test_near_far_photos.py``), and prints per world the far-field accuracy over the
+cells it labels, the share of cells in view it abstained on, and on the path band its
+accuracy and that of the nearest-near-field-cell baseline on the same cells.
 """
 
 from __future__ import annotations
@@ -103,7 +111,7 @@ def run(traverse: Traverse, labels: list[str | None], **kwargs: object) -> tuple
             times["predict"].append(time.perf_counter() - t2)
         t3 = time.perf_counter()
         if labels[i] is not None:
-            model.update_tiles(tiles, calib, labels[i])
+            model.update_tiles(tiles, calib, labels[i], frame.pose)
             times["update"].append(time.perf_counter() - t3)
         times["read"].append(t1 - t0)
         times["features"].append(t2 - t1)
@@ -194,6 +202,7 @@ def report(path: Path, args: argparse.Namespace) -> None:
         recall=False,
         min_support=1,
         min_confidence=0.0,
+        calibrate=False,
     )
     ceiling = area_coverage(base_preds, poses, world, PATCH, threshold=0.0)
     base = area_coverage(base_preds, poses, world, PATCH, threshold=args.threshold)
@@ -215,6 +224,46 @@ def report(path: Path, args: argparse.Namespace) -> None:
     )
     if not args.no_texture:
         texture_baseline(traverse, world, labels)
+
+
+def photos(segment: float, n_worlds: int) -> None:
+    """Near-to-far on photo worlds (see the module notes)."""
+    from rough_map.config import StereoCalibration
+    from rough_map.evaluation.near_far_path import path_band_accuracy
+    from rough_map.simulate import photo_ground as pg
+
+    full = StereoCalibration.xb3_default()
+    calib = StereoCalibration(  # a quarter of the rig: tiles of 8 px
+        fx=full.fx / 4, fy=full.fy / 4, cx=(full.cx + 0.5) / 4 - 0.5,
+        cy=(full.cy + 0.5) / 4 - 0.5, width=round(full.width / 4),
+        height=round(full.height / 4), baseline=full.baseline,
+        camera_to_vehicle=full.camera_to_vehicle,
+    )  # fmt: skip
+    orders = [(0, 1, 2, 3), (2, 0, 3, 1), (3, 2, 1, 0), (1, 3, 0, 2), (0, 2, 1, 3), (3, 1, 0, 2)]
+    print(f"\n## photo worlds, {segment:g} m segments (far accuracy over labelled cells)")
+    print("| world | look | labelled cells | far accuracy | abstained | <1.5 m | 1.5-2 m | 2-3 m "
+          "| 3-4 m | path band cells | path band | baseline |")  # fmt: skip
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for w, order in enumerate(orders[:n_worlds]):
+        for color in (True, False):
+            world = pg.photo_world(order, segment=segment, seed=w)
+            poses = pg.drive_straight(len(order) * segment - 1.5, seed=w)
+            truth = pg.true_near_labels(world, poses)
+            labels = [truth[max(0, i - 2)] for i in range(len(truth))]
+            k = len(labels) // 2 + 3
+            labels[k] = pg.PHOTOS[(pg.PHOTOS.index(str(labels[k])) + 1) % 4]
+            out = Path(tempfile.mkdtemp(prefix="near_far_photo_")) / "traverse"
+            trav = pg.write_photo_traverse(out, world, poses, calib, pg.PhotoGround(color=color),
+                                           labels)  # fmt: skip
+            preds = nf.run_traverse(trav, labels, patch=PATCH, classes=pg.PHOTOS, tile_px=8,
+                                    settle=3)  # fmt: skip
+            table = far_field_accuracy(preds, world)
+            band = path_band_accuracy(preds, world, poses, labels, PATCH)
+            d = table.to_dict()
+            acc = " | ".join(f"{a:.3f}" if np.isfinite(a) else "-" for a in table.accuracy[:4])
+            print(f"| {w} | {'colour' if color else 'grey'} | {table.n.sum()} | "
+                  f"{table.overall():.3f} | {d['abstained_fraction']:.3f} | {acc} | {band.n} | "
+                  f"{band.accuracy:.3f} | {band.baseline_accuracy:.3f} |")  # fmt: skip
 
 
 def main() -> None:
@@ -241,7 +290,14 @@ def main() -> None:
         help="share of near labels replaced by another class",
     )
     parser.add_argument("--no-texture", action="store_true", help="skip the LBP baseline")
+    parser.add_argument("--photos", action="store_true", help="run the photo worlds instead")
+    parser.add_argument("--segment", type=float, default=3.0, metavar="M",
+                        help="photo worlds: length of a class segment, m")  # fmt: skip
+    parser.add_argument("--worlds", type=int, default=4, metavar="N")
     args = parser.parse_args()
+    if args.photos:
+        photos(args.segment, args.worlds)
+        return
     paths = list(args.traverse)
     if args.simulate:
         start = time.perf_counter()

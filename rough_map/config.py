@@ -42,6 +42,13 @@ from pydantic import (
 from pydantic_core import PydanticCustomError
 
 from rough_map._files import atomic_output
+from rough_map.calibration_files import (
+    Rectification,
+    camera_info_values,
+    check_principal_point,
+    check_rigid_transform,
+    opencv_values,
+)
 from rough_map.errors import FileFormatError, InputError, SchemaError
 from rough_map.geometry import CAMERA_AXES_IN_VEHICLE, pose_matrix, rotation_matrix
 
@@ -186,31 +193,19 @@ CrsField = Annotated[
 ]
 
 
-def check_rigid_transform(value: list[list[float]]) -> list[list[float]]:
-    """Validate ``camera_to_vehicle``: 4x4, last row [0, 0, 0, 1], a proper rotation."""
-    m = np.asarray(value, dtype=float)
-    if m.shape != (4, 4):
-        raise ValueError(f"camera_to_vehicle must be 4x4, got shape {m.shape}")
-    if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0]):
-        raise ValueError("camera_to_vehicle last row must be [0, 0, 0, 1]")
-    r = m[:3, :3]
-    if not np.allclose(r @ r.T, np.eye(3), atol=1e-5) or np.linalg.det(r) < 0:
-        raise ValueError("camera_to_vehicle rotation block is not a proper rotation")
-    return value
-
-
-def check_principal_point(calib: Any) -> None:
-    """Validate that the principal point (cx, cy) lies inside the image (px)."""
-    if not (0 <= calib.cx < calib.width and 0 <= calib.cy < calib.height):
-        raise ValueError("principal point (cx, cy) must lie inside the image")
-
-
 class StereoCalibration(_Model):
-    """Intrinsics and extrinsics of a rectified stereo rig.
+    """Intrinsics and extrinsics of a stereo rig, as the rectified pair it gives.
 
-    Images are rectified and row-aligned with one pinhole matrix; the right camera sits
-    ``baseline`` m along the left camera's +x axis. Camera frame: OpenCV (x right, y down,
-    z forward); vehicle frame: x forward, y left, z up.
+    The rectified images are row-aligned with one focal length and principal point row; the
+    right camera sits ``baseline`` m along the left camera's +x axis and its principal point
+    column is ``cx_right`` (px; default ``cx``), so a point at depth ``Z`` (m) has disparity
+    ``d = u_left - u_right = fx * baseline / Z - doffs`` (px), ``doffs = cx_right - cx``
+    (Middlebury's). A raw pair has a ``rectification`` (:func:`rough_map.stereo.rectify_pair`
+    applies it). Camera frame: OpenCV (x right, y down, z forward) of the
+    *rectified* left camera; vehicle frame: x forward, y left, z up.
+
+    Read from rough_map's YAML/JSON (:meth:`from_file`), ROS ``CameraInfo``
+    (:meth:`from_camera_info`) or OpenCV ``FileStorage`` (:meth:`from_opencv`).
 
     The one calibration of rough_map: a traverse's ``calibration``, the stereo matcher's, the
     renderer's and near-to-far's. Any object with these attributes validates
@@ -228,6 +223,14 @@ class StereoCalibration(_Model):
     baseline: float = Field(gt=0, description="Distance between the optical centres, m.")
     camera_to_vehicle: list[list[float]] = Field(
         description="4x4 transform, row-major: left-camera coordinates (m) -> vehicle (m)."
+    )
+    cx_right: float | None = Field(
+        None,
+        description="Principal point column of the right rectified image, px; default cx. "
+        "cx_right - cx is Middlebury's doffs.",
+    )
+    rectification: Rectification | None = Field(
+        None, description="How to rectify the raw images; absent if they are rectified."
     )
 
     @field_validator("camera_to_vehicle")
@@ -256,8 +259,36 @@ class StereoCalibration(_Model):
 
     @property
     def focal_baseline(self) -> float:
-        """``fx * baseline`` in px m: depth ``Z = focal_baseline / d``."""
+        """``fx * baseline`` in px m: depth ``Z = focal_baseline / (d + doffs)``."""
         return self.fx * self.baseline
+
+    @property
+    def doffs(self) -> float:
+        """``cx_right - cx``, px (0 without ``cx_right``): disparity ``d = fx B / Z - doffs``."""
+        return 0.0 if self.cx_right is None else self.cx_right - self.cx
+
+    @classmethod
+    def from_camera_info(
+        cls, left: str | Path, right: str | Path, camera_to_vehicle: Any = None
+    ) -> StereoCalibration:
+        """Read the two cameras' ROS ``CameraInfo`` YAML files; ``camera_to_vehicle`` (4x4,
+        m) is the raw left camera's pose (default: at the vehicle origin, looking along x).
+        Raises FileFormatError or SchemaError naming the file and field (see
+        :mod:`rough_map.calibration_files`)."""
+        return cls._checked(camera_info_values(left, right, camera_to_vehicle), right)
+
+    @classmethod
+    def from_opencv(cls, path: str | Path, camera_to_vehicle: Any = None) -> StereoCalibration:
+        """Read an OpenCV ``FileStorage`` file (``M1 D1 M2 D2 R T``, T in m, optionally ``R1
+        R2 P1 P2``); ``camera_to_vehicle`` and errors as :meth:`from_camera_info`."""
+        return cls._checked(opencv_values(path, camera_to_vehicle), path)
+
+    @classmethod
+    def _checked(cls, values: dict[str, Any], path: str | Path) -> StereoCalibration:
+        try:
+            return cls.model_validate(values)
+        except ValidationError as err:
+            raise schema_error(path, err) from err
 
     @classmethod
     def from_file(cls, path: str | Path) -> StereoCalibration:
@@ -275,7 +306,7 @@ class StereoCalibration(_Model):
     def to_file(self, path: str | Path) -> None:
         """Write the calibration as YAML (or JSON if ``path`` ends in ``.json``)."""
         path = Path(path)
-        data = self.model_dump()
+        data = self.model_dump(exclude_none=True)
         text = (
             json.dumps(data, indent=2)
             if path.suffix.lower() == ".json"
@@ -309,6 +340,13 @@ class StereoCalibration(_Model):
             baseline=0.24,
             camera_to_vehicle=transform.tolist(),
         )
+
+
+def _validated(cls: type[StereoCalibration], values: dict, path: str | Path) -> StereoCalibration:
+    try:
+        return cls.model_validate(values)
+    except ValidationError as err:
+        raise schema_error(path, err) from err
 
 
 class FrameSpec(_Model):

@@ -128,6 +128,7 @@ def analyse(
     resolution: float = 0.1,
     near_far: str | bool = "auto",
     far_weight: float = 0.3,
+    near_far_settings: n2f.NearFarSettings | None = None,
     roughness: str = "raw",
     n_jobs: int = 1,
     progress: bool = False,
@@ -158,6 +159,9 @@ def analyse(
         images and there is a model).
     far_weight : float
         Weight of a far-field prediction relative to a near-field observation.
+    near_far_settings : NearFarSettings, optional
+        Tile size, range, weight (replacing ``far_weight``), confidence threshold and
+        label settling of near-to-far; default the shipped ``configs/near_far.yaml``.
     roughness : {"raw", "smoothed"}
         The R and w the map fuses: each frame's own (``"raw"``, the default), or those
         smoothed along the path (:class:`rough_map.filter.RoughnessSmoother`, the
@@ -217,7 +221,10 @@ def analyse(
             raise InputError(f"{traverse.name}: near-to-far needs stereo images in the frames")
         if prediction is None:
             raise InputError("near-to-far needs a terrain model to label the near field")
-        result.far, result.far_report = _near_to_far(result, prediction, far_weight, progress)
+        settings = near_far_settings or n2f.load_near_far_settings()
+        if near_far_settings is None:
+            settings = settings.model_copy(update={"weight": far_weight})
+        result.far, result.far_report = _near_to_far(result, prediction, settings, progress)
         far_sums = [n for n in grid.layers if n.startswith("far_") and is_accumulator(grid, n)]
         mapper.tiles.add_group("far")
         mapper.tiles.add_layers_from(grid, far_sums)
@@ -279,19 +286,35 @@ def level_edges(result: TraverseAnalysis) -> tuple[float, ...]:
 
 
 def _near_to_far(
-    result: TraverseAnalysis, pred: TerrainPrediction, weight: float, progress: bool
+    result: TraverseAnalysis,
+    pred: TerrainPrediction,
+    settings: n2f.NearFarSettings,
+    progress: bool,
 ) -> tuple[list[n2f.FarPrediction], dict[str, Any]]:
     """Near-to-far along the traverse, fused into the map's far layers; the predictions
-    and the coverage report (with the far-field accuracy when the world is known)."""
+    and the coverage report (with the far-field accuracy when the world is known). Only
+    settled, confident near labels teach it (:func:`rough_map.map.near_far.run_traverse`)."""
     labels = np.where(pred.valid, pred.filtered_class, "")
+    calib = result.traverse.spec.calibration
     far = n2f.run_traverse(
         result.traverse,
         labels,
         patch=result.extraction,
         classes=tuple(pred.classes),
+        settle=settings.settle_frames,
+        min_posterior=settings.min_posterior,
+        posterior=np.nan_to_num(np.max(np.asarray(pred.filtered_proba, dtype=float), axis=1)),
+        defect=None if pred.mode == "forward" else pred.defect,
         progress=progress,
+        tile_px=settings.tile_px(calib, result.extraction) if calib is not None else 32,
+        max_range=settings.max_range_m,
+        min_confidence=settings.min_confidence,
+        recall_min_confidence=settings.recall_min_confidence,
+        calibrate=settings.calibrate,
     )
+    weight = settings.weight
     grid = result.map
+    grid.attrs["far_min_confidence"] = float(settings.min_confidence)
     for fp in far:
         if len(fp) == 0:
             continue

@@ -285,11 +285,12 @@ def test_accuracy_table_to_dict() -> None:
     assert table.to_dict() == {
         "threshold": 0.6,
         "overall": 0.5,
+        "abstained_fraction": 0.0,
         "bins": [
             {"from_m": 0.0, "to_m": 1.5, "cells": 4, "confident": 2, "accuracy": 0.5,
-             "accuracy_all": 0.75},
+             "accuracy_all": 0.75, "abstained": 0, "abstained_fraction": 0.0},
             {"from_m": 1.5, "to_m": 2.0, "cells": 0, "confident": 0, "accuracy": None,
-             "accuracy_all": None},
+             "accuracy_all": None, "abstained": 0, "abstained_fraction": None},
         ],
     }  # fmt: skip
     json.dumps(table.to_dict(), allow_nan=False)
@@ -298,7 +299,14 @@ def test_accuracy_table_to_dict() -> None:
 @pytest.mark.slow
 def test_map_json_on_a_traverse_with_images(imaged: Path, tmp_path: Path, capsys) -> None:
     """near-to-far runs (stereo images), and its accuracy table is in the JSON."""
-    code, out, err = run(capsys, "-q", "map", imaged, "--out", tmp_path / "map", "--json")
+    # every label, uncalibrated: settled and calibrated, near-to-far abstains on this short
+    # course (7 images, the class changing every 2 m)
+    config = tmp_path / "near_far.yaml"
+    config.write_text("calibrate: false\nsettle_frames: 0\n", encoding="utf-8")
+    code, out, err = run(
+        capsys, "-q", "map", imaged, "--out", tmp_path / "map", "--json",
+        "--near-far-config", config,
+    )  # fmt: skip
     assert code == 0, err
     assert err == ""
     summary = json.loads(out)  # one whole document

@@ -193,7 +193,8 @@ def test_tile_features_shape_and_colour() -> None:
 def test_learns_looks_and_flags_unfamiliar_ones() -> None:
     calib = scaled_calibration()
     pose = np.zeros(6)
-    model = NearToFar(CLASS_NAMES, PATCH, tile_px=TILE, min_confidence=0.0)
+    # the looks alone: the calibrated model abstains until far predictions were checked
+    model = NearToFar(CLASS_NAMES, PATCH, tile_px=TILE, min_confidence=0.0, calibrate=False)
     for seed in range(3):
         model.update(_flat_image(calib, GREY, seed), calib, pose, "concrete")
     grey = model.predict(_flat_image(calib, GREY, 10), calib, pose)
@@ -222,7 +223,9 @@ def test_learns_looks_and_flags_unfamiliar_ones() -> None:
 def test_predictions_are_ground_cells_beyond_the_near_field() -> None:
     calib = scaled_calibration()
     pose = np.array([10.0, 5.0, 0.0, 0.0, 0.0, math.pi / 2])  # heading north (+y)
-    model = NearToFar(CLASS_NAMES, PATCH, tile_px=TILE, max_range=3.0, ground_step=0.2)
+    model = NearToFar(
+        CLASS_NAMES, PATCH, tile_px=TILE, max_range=3.0, ground_step=0.2, calibrate=False
+    )
     for seed in range(2):
         model.update(_flat_image(calib, GREY, seed), calib, pose, "concrete")
     pred = model.predict(_flat_image(calib, GREY, 5), calib, pose, t=1.5, frame=7)
@@ -251,7 +254,7 @@ def test_the_near_field_is_the_patch_of_the_labels() -> None:
     calib = scaled_calibration()
     pose = np.zeros(6)
     patch = PatchSpec(ahead=1.5)
-    model = NearToFar(CLASS_NAMES, patch, tile_px=TILE, max_range=3.0)
+    model = NearToFar(CLASS_NAMES, patch, tile_px=TILE, max_range=3.0, calibrate=False)
     for seed in range(2):
         model.update(_flat_image(calib, GREY, seed), calib, pose, "concrete")
     (x0, x1), (y0, y1) = model.near_field_.ahead, model.near_field_.lateral
@@ -392,7 +395,9 @@ def test_online_model_improves_as_frames_arrive(course: tuple[Traverse, HeightFi
     traverse, world = course
     calib = traverse.spec.calibration
     image, pose = read(traverse, 4), traverse.frames[4].pose
-    model = NearToFar(CLASS_NAMES, PATCH, tile_px=TILE, recall=False, min_confidence=0.0)
+    model = NearToFar(
+        CLASS_NAMES, PATCH, tile_px=TILE, recall=False, min_confidence=0.0, calibrate=False
+    )
     good, p_true = [], []
     for i in range(len(traverse) - 1):
         model.update(read(traverse, i), calib, traverse.frames[i].pose, traverse.frames[i].label)
@@ -414,12 +419,23 @@ def test_far_field_accuracy_and_area(
     assert [p.frame for p in predictions] == list(range(1, len(traverse)))
     table = far_field_accuracy(predictions, world, threshold=0.6)
     assert table.edges.tolist() == [0, 1.5, 2, 3, 4, 5, 6, 8]
-    assert table.n[:4].sum() > 1000
+    assert table.n[:4].sum() > 500
     assert table.overall(max_distance=4.0) >= 0.8
     coverage = area_coverage(predictions, traverse.poses(), world, PATCH, threshold=0.6)
-    assert coverage.ratio >= 3.0
+    # calibrated, it abstains until far predictions of two classes were checked: on this
+    # short course (three new classes in 7.5 m) that halves the area ...
+    assert coverage.ratio >= 1.5
     assert coverage.accuracy >= 0.8
     assert "| 2-3 |" in table.to_text()
+    assert 0.2 < table.to_dict()["abstained_fraction"] < 1.0
+    # ... which the looks alone cover three times over, as accurately here
+    raw = run_traverse(
+        traverse, traverse.labels(), patch=PATCH, classes=CLASS_NAMES, tile_px=TILE,
+        calibrate=False,
+    )  # fmt: skip
+    coverage = area_coverage(raw, traverse.poses(), world, PATCH, threshold=0.6)
+    assert coverage.ratio >= 3.0
+    assert coverage.accuracy >= 0.8
 
 
 def test_unknown_near_labels_are_not_learnt(course: tuple[Traverse, HeightField]) -> None:

@@ -201,8 +201,9 @@ def jobs(text: str) -> int:
 NEAR_FAR: dict[str, str | bool] = {"auto": "auto", "on": True, "off": False}
 
 
-def add_map_args(parser: argparse.ArgumentParser) -> None:
-    """``--resolution M`` and ``--near-far {auto,on,off}`` of the commands that map."""
+def add_map_args(parser: argparse.ArgumentParser, *, settings: bool = True) -> None:
+    """``--resolution M`` and ``--near-far {auto,on,off}`` of the commands that map; with
+    ``settings`` also the near-to-far settings (:func:`near_far_settings`)."""
     parser.add_argument(
         "--resolution",
         type=positive_float("m"),
@@ -216,6 +217,45 @@ def add_map_args(parser: argparse.ArgumentParser) -> None:
         default="auto",
         help="near-to-far from the stereo images (auto: when there are images)",
     )
+    if not settings:
+        return
+    parser.add_argument(
+        "--near-far-config",
+        type=existing_path,
+        default=None,
+        metavar="FILE",
+        help="near-to-far settings (YAML like configs/near_far.yaml; default the shipped one)",
+    )
+    for flag, unit, help_text in (
+        ("--far-tile", "m", "image tile side on the ground at the near-field patch, m"),
+        ("--far-range", "m", "farthest far-field cell from the vehicle, m"),
+        ("--far-weight", "1", "weight of a far-field prediction relative to a near-field patch"),
+        ("--far-confidence", "1", "calibrated probability a far cell needs; below: unknown"),
+    ):
+        parser.add_argument(
+            flag, type=positive_float(unit), default=None, metavar="X", help=help_text
+        )
+
+
+def near_far_settings(args: argparse.Namespace) -> Any:
+    """The near-to-far settings of :func:`add_map_args`' options: the config file's (or the
+    shipped one's), with the values given on the command line replacing its own."""
+    from rough_map.map.near_far import load_near_far_settings
+
+    settings = load_near_far_settings(args.near_far_config)
+    update = {
+        key: value
+        for key, value in (
+            ("tile_size_m", args.far_tile),
+            ("max_range_m", args.far_range),
+            ("weight", args.far_weight),
+            ("min_confidence", args.far_confidence),
+        )
+        if value is not None
+    }
+    if update.get("min_confidence", 0.0) > 1.0:
+        raise argparse.ArgumentTypeError("--far-confidence must be at most 1")
+    return settings.model_copy(update=update)
 
 
 def add_jobs_arg(parser: argparse.ArgumentParser) -> None:

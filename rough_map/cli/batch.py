@@ -44,7 +44,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="MODEL",
         help="terrain model: 'default' (shipped) or a .skops file (default: default)",
     )
-    add_map_args(p)
+    add_map_args(p, settings=False)
     p.add_argument("--no-png", action="store_true", help="skip the PNGs")
     p.add_argument(
         "--scheduler",

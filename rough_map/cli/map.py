@@ -12,6 +12,7 @@ from rough_map.cli._common import (
     add_model_arg,
     add_traverses_arg,
     emit_json,
+    near_far_settings,
     status,
     table,
 )
@@ -81,6 +82,7 @@ def run(args: argparse.Namespace) -> int:
         args.model or default_model(),
         resolution=args.resolution,
         near_far=near_far,
+        near_far_settings=near_far_settings(args),
         roughness=args.roughness,
         n_jobs=args.jobs,
         progress=args.progress,

@@ -11,6 +11,7 @@ from rough_map.cli._common import (
     add_map_args,
     add_model_arg,
     add_traverses_arg,
+    near_far_settings,
     status,
 )
 from rough_map.cli.map import default_model
@@ -55,6 +56,7 @@ def run(args: argparse.Namespace) -> int:
         model_path,
         resolution=args.resolution,
         near_far=near_far,
+        near_far_settings=near_far_settings(args),
         n_jobs=args.jobs,
         progress=args.progress,
     )

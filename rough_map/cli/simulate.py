@@ -40,6 +40,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         ),
     )
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="new folder")
+    p.add_argument(
+        "--no-truth-geotiff",
+        action="store_true",
+        help="skip DIR/world_truth.tif, the true classes as a class GeoTIFF (the truth "
+        "`rough-map score` reads; uint8 at the world's 2 mm spacing, names in its tags)",
+    )
     _add_course_args(p)
     _add_sensor_args(p)
     _add_recording_args(p)
@@ -170,6 +176,9 @@ def run(args: argparse.Namespace) -> int:
     )
     print(path)
     status(args, f"simulated the {args.course} course into {args.out}")
+    if not args.no_truth_geotiff:
+        written = _write_truth_geotiff(args.out)
+        status(args, f"wrote its true classes to {written} (for rough-map score --truth)")
     if args.bag is not None:
         from rough_map.io.rosbag import write_example_bag
 
@@ -179,3 +188,18 @@ def run(args: argparse.Namespace) -> int:
         print(bag)
         status(args, f"recorded it as a ROS bag ({args.bag_storage}) in {bag}")
     return 0
+
+
+def _write_truth_geotiff(folder: Path) -> Path:
+    """Write the simulated world's classes as ``folder/world_truth.tif`` (the truth format
+    of ``rough-map score``), in the traverse's CRS."""
+    from rough_map.export.geotiff import rasterio_crs
+    from rough_map.io.traverse import load_traverse
+    from rough_map.io.truth import traverse_truth
+    from rough_map.io.truth_raster import TRUTH_GEOTIFF, write_truth_geotiff
+
+    traverse = load_traverse(folder)
+    world = traverse_truth(traverse)
+    if world is None:
+        raise InputError(f"{folder}: the simulated traverse has no world truth")
+    return write_truth_geotiff(world, folder / TRUTH_GEOTIFF, rasterio_crs(traverse.spec.crs))

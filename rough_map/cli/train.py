@@ -20,14 +20,13 @@ model does not learn one sensor::
     rough-map simulate --out sim/train-106 --course random --length 100 --seed 106 --speed 0.7 --points-per-cell 12 --noise 0.0005 --no-images
     rough-map train sim/train-101 sim/train-102 sim/train-103 sim/train-104 sim/train-105 sim/train-106 --out models/default
 
-(about 12 min on this 2-core machine: 10 to simulate, 2 to compute the features and fit;
-the traverses take 9.4 GB of clouds). The card records the sha256 of the training
-features. The shipped model was fitted on data with ``66836b28...`` (the simulator and
-feature extraction of its card's date; it was since converted to the current model layout
-with every fitted number kept, see ``converted_from`` in its card). This version's simulator
-builds courses longer than 50 m in 6 m tiles (bounded memory), so these 100 m traverses,
-their hash and a model trained on them differ from the shipped one's; so does any later
-change to the simulator or the feature extraction.
+(about 12 min on a quiet 2-core machine: 10 to simulate, 2 to compute the features and
+fit; the traverses take 9.4 GB of clouds, less with ``simulate --compress``, which the
+shipped model's were made with). The card records the sha256 of the training features:
+the shipped model was fitted on data with ``b6de8ab0...``, this version's simulator (courses
+longer than 50 m built in 6 m tiles) and feature extraction (cell means at any density, the
+noise floor of issue 12). Any later change to the simulator or the feature extraction gives
+other traverses, another hash and another model.
 """  # noqa: E501
 
 from __future__ import annotations

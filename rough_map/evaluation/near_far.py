@@ -89,6 +89,9 @@ class AccuracyTable:
         Share of all predictions whose class is the world's; NaN for empty bins.
     threshold : float
         Confidence threshold.
+    n_abstained : ndarray of int, shape (B,)
+        Cells in view that the model left unknown per bin (whatever the world holds there;
+        :attr:`~rough_map.map.near_far.FarPrediction.abstained`).
     """
 
     edges: NDArray[np.float64]
@@ -97,6 +100,14 @@ class AccuracyTable:
     accuracy: NDArray[np.float64]
     accuracy_all: NDArray[np.float64]
     threshold: float
+    n_abstained: NDArray[np.int64] | None = None
+
+    def abstained_fraction(self) -> NDArray[np.float64]:
+        """Share of the cells in view left unknown per bin: abstained / (abstained +
+        predicted); NaN for empty bins."""
+        ab = np.zeros_like(self.n) if self.n_abstained is None else self.n_abstained
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(ab + self.n > 0, ab / (ab + self.n), np.nan)
 
     def overall(self, max_distance: float = np.inf) -> float:
         """Accuracy of the confident predictions up to ``max_distance`` m (bin edges)."""
@@ -113,9 +124,15 @@ class AccuracyTable:
         def number(v: float) -> float | None:
             return float(v) if np.isfinite(v) else None
 
+        ab = np.zeros_like(self.n) if self.n_abstained is None else self.n_abstained
+        fraction = self.abstained_fraction()
+
         return {
             "threshold": float(self.threshold),
             "overall": number(self.overall()),
+            "abstained_fraction": number(
+                float(ab.sum() / (ab.sum() + self.n.sum())) if ab.sum() + self.n.sum() else np.nan
+            ),
             "bins": [
                 {
                     "from_m": float(self.edges[k]),
@@ -124,6 +141,8 @@ class AccuracyTable:
                     "confident": int(self.n_confident[k]),
                     "accuracy": number(self.accuracy[k]),
                     "accuracy_all": number(self.accuracy_all[k]),
+                    "abstained": int(ab[k]),
+                    "abstained_fraction": number(fraction[k]),
                 }
                 for k in range(len(self.n))
             ],
@@ -133,13 +152,15 @@ class AccuracyTable:
         """The table as aligned text (a Markdown table)."""
         lines = [
             f"| distance (m) | cells | confident (p >= {self.threshold:g}) | accuracy "
-            "(confident) | accuracy (all) |",
-            "|---|---:|---:|---:|---:|",
+            "(confident) | accuracy (all) | abstained |",
+            "|---|---:|---:|---:|---:|---:|",
         ]
+        fraction = self.abstained_fraction()
         for k in range(len(self.n)):
             lines.append(
                 f"| {self.edges[k]:g}-{self.edges[k + 1]:g} | {self.n[k]} | "
-                f"{self.n_confident[k]} | {self.accuracy[k]:.3f} | {self.accuracy_all[k]:.3f} |"
+                f"{self.n_confident[k]} | {self.accuracy[k]:.3f} | {self.accuracy_all[k]:.3f} | "
+                f"{fraction[k]:.3f} |"
             )
         return "\n".join(lines)
 
@@ -180,7 +201,10 @@ def far_field_accuracy(
     n_conf = np.zeros(n_bins, dtype=np.int64)
     hits = np.zeros(n_bins)
     hits_all = np.zeros(n_bins)
+    n_abstained = np.zeros(n_bins, dtype=np.int64)
     for pred in predictions:
+        ab = np.searchsorted(edges, np.asarray(pred.abstained), side="right") - 1
+        np.add.at(n_abstained, ab[(ab >= 0) & (ab < n_bins)], 1)
         if not len(pred):
             continue
         remap = class_remap(pred.classes, world)
@@ -198,7 +222,7 @@ def far_field_accuracy(
     with np.errstate(invalid="ignore", divide="ignore"):
         accuracy = np.where(n_conf > 0, hits / n_conf, np.nan)
         accuracy_all = np.where(n > 0, hits_all / n, np.nan)
-    return AccuracyTable(edges, n, n_conf, accuracy, accuracy_all, float(threshold))
+    return AccuracyTable(edges, n, n_conf, accuracy, accuracy_all, float(threshold), n_abstained)
 
 
 @dataclass(frozen=True)

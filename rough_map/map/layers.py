@@ -32,7 +32,10 @@ Layers of the near field (group ``"near"``, no prefix)
 Far field (group ``"far"``, prefix ``far_``): ``far_p_<class>``, ``far_class``,
 ``far_count``, ``far_last_seen`` — class predictions of a near-to-far model, fused by
 :func:`~rough_map.map.fusion.fuse_cell_probabilities` with a lower weight into layers of
-their own, so their provenance shows.
+their own, so their provenance shows — and ``far_confidence``: the share of the cell's
+far-field evidence on its most probable class (the mean calibrated probability of that
+class over the predictions, without the prior); where it is below
+``grid.attrs["far_min_confidence"]`` (default 0) ``far_class`` is NaN: the map abstains.
 
 Internal layers (``kind="internal"``, not exported): ``n_roughness``, ``sum_lnR``,
 ``sum_lnR2``, ``n_sigma``, ``sum_rel_var_R``, ``sum_w``, ``sum_w2``, ``sum_var_w``,
@@ -143,6 +146,12 @@ def init_layers(
             for name, units, desc, fill in (
                 ("count", "1", "number of far-field predictions fused into the cell", 0.0),
                 ("last_seen", "s", "time of the latest far-field prediction", math.nan),
+                (
+                    "confidence",
+                    "1",
+                    "share of the far-field evidence on the most probable class",
+                    math.nan,
+                ),
             ):
                 if prefix + name not in grid:
                     grid.add_layer(prefix + name, units=units, description=desc, fill=fill)
@@ -243,7 +252,16 @@ def _update_classes(
     p = (ev + prior / len(names)) / (total + prior)
     for k, c in enumerate(names):
         grid[f"{prefix}p_{c}"][win] = np.where(seen, p[k], np.nan)
-    grid[f"{prefix}class"][win] = np.where(seen, np.argmax(p, axis=0), np.nan)
+    label = np.where(seen, np.argmax(p, axis=0), np.nan)
+    if f"{prefix}confidence" in grid:
+        # far field: the calibrated probabilities' agreement, without the prior; below the
+        # map's far_min_confidence the cell stays unknown (abstains)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            confidence = np.where(seen, ev.max(axis=0) / total, np.nan)
+        grid[f"{prefix}confidence"][win] = confidence
+        threshold = float(grid.attrs.get(f"{prefix}min_confidence", 0.0))
+        label = np.where(confidence >= threshold, label, np.nan)
+    grid[f"{prefix}class"][win] = label
 
 
 def apply_levels(grid: GridMap, levels: Callable[[NDArray[np.float64]], ArrayLike]) -> GridMap:

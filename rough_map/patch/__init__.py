@@ -11,6 +11,13 @@ Tilt (paper Eq. 11): the cloud is expressed in the vehicle frame, which rolls an
 with the terrain. :func:`compensate_tilt` rotates it into a gravity-aligned frame with the
 IMU's roll and pitch; the PSD is little affected by tilts of a few degrees, so this is
 optional.
+
+Sparse clouds: :func:`auto_spacing` chooses a coarser step of :func:`spacing_ladder` over
+the same square when the cloud has too few points per cell (``Extraction(auto_spacing=True)``,
+``--spacing auto``).
+
+Layout: :mod:`rough_map.patch.spec` (:class:`PatchSpec`, the grid steps, :class:`Extraction`)
+and :mod:`rough_map.patch.grid` (:func:`grid_points`, :class:`GriddedPatch`).
 """
 
 from rough_map.geometry import compensate_tilt

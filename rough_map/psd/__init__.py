@@ -31,9 +31,11 @@ White measurement noise of variance ``s^2`` per grid cell adds a flat floor
 ``s^2 B / pi`` m^3/rad to every ordinate. It lifts the high-wavenumber end, which flattens
 ``w`` and lowers ``R``. Pass the floor (:func:`rough_map.patch.grid_points` estimates it from
 the scatter of the points inside each cell) as ``noise_psd`` and set ``subtract_noise=True``
-to remove it: the floor is subtracted from the patch-mean spectrum, every profile's log
-spectrum is shifted by the same per-bin correction, and bins where the noise is more than
-half the measured power are left out of the fit. It matters when the floor reaches a few
+to remove it: the floor is subtracted from the patch-mean spectrum (smoothed over +-3
+ordinates, so that one bin's scatter does not bias its own correction), every profile's log
+spectrum is shifted by the same per-bin correction, each ordinate weighs in the fit as the
+square of its signal share, and the fit ends at the first bin where the noise takes more
+than half the measured power. It matters when the floor reaches a few
 per cent of the terrain's power at ``pi / B``: smooth surfaces (ISO A-C) seen with stereo,
 or sparse clouds with only a few points per cell.
 
@@ -52,7 +54,8 @@ Layout
 parts: ``_gaps`` (input checks, gap policy), ``_spectra`` (periodogram, Welch, log bias),
 ``_leakage`` (the detrend/window/cell-mean tables), ``_regression`` (the line fit as
 projections), ``_noise`` (the noise floor), ``_fit`` (the fit with the unbiased
-corrections) and ``_result`` (:class:`PatchRoughness`).
+corrections), ``_uncertainty`` (the standard errors ``se_lnR``, ``se_w``, with the
+correlation between profiles) and ``_result`` (:class:`PatchRoughness`).
 """
 
 from rough_map.patch import METHODS

@@ -7,7 +7,10 @@ The pipeline of the paper, step by step:
 2. *3-D points*: ``Z = fx B / d`` in the left camera frame, :func:`disparity_to_points`, then
    to the vehicle frame with the rig's extrinsics, :func:`to_vehicle`.
 3. *Statistical moving-window filter*: a robust median/MAD test of the heights in small
-   windows of the ground plane, :func:`statistical_outlier_filter`.
+   windows of the ground plane, :func:`statistical_outlier_filter`; the points it rejects
+   that enough neighbours in the image support are kept (relief steeper than a window is
+   not noise). The full frame, which need not be ground, uses the image test alone
+   (:func:`image_outlier_mask`).
 4. *Patch of interest*: only points over the patch footprint are kept.
 
 :func:`stereo_to_cloud` chains the four. With ``restrict_to_patch=True`` (the default, the
@@ -52,13 +55,20 @@ dense noise-free cloud of the true surface, ``frame_features`` of single stereo 
 pixel (a 2 mm change of plane) moves R by +-40 % and ``w`` by +-0.1 on a given frame
 (tests/test_stereo.py, ``test_stereo_features_agree_with_the_true_surface``, xfail).
 
+Any calibrated rig: :func:`load_calibration` reads rough_map's calibration, the two
+cameras' ROS ``CameraInfo`` files or an OpenCV ``FileStorage`` file; a raw pair is rectified
+first (:func:`rectify_pair`); :func:`stereo_frame` gives the disparity map and the
+camera-frame points of a whole frame of any scene, over the disparities of the depths that
+matter (:func:`disparity_range`).
+
 Conventions
 -----------
-* Images are rectified, undistorted, row-aligned and share one pinhole matrix ``K``
-  (``cx`` equal in both views, i.e. OpenCV ``stereoRectify`` with ``CALIB_ZERO_DISPARITY``).
+* Images are matched rectified, undistorted and row-aligned, with one focal length and
+  principal point row; the right principal point column may differ (``cx_right``,
+  ``doffs = cx_right - cx``; 0 for OpenCV ``stereoRectify`` with ``CALIB_ZERO_DISPARITY``).
   The left camera is the reference; the right camera sits ``baseline`` metres along the
   left camera's +x axis, so a point at depth ``Z`` has disparity ``d = u_left - u_right =
-  fx * baseline / Z``.
+  fx * baseline / Z - doffs``.
 * Pixel ``(u, v)`` = (column, row); integer coordinates are pixel centres (OpenCV).
 * Camera frame: OpenCV, x right, y down, z forward. Vehicle frame: x forward, y left, z up.
   ``camera_to_vehicle`` maps left-camera coordinates to vehicle coordinates.
@@ -76,8 +86,11 @@ Modules
                        :func:`level_plane`
 ``window``             what sees the patch: :func:`patch_window`, :func:`patch_rows`
 ``triangulation``      :func:`disparity_to_points`, :func:`to_vehicle`, :func:`crop_to_patch`
-``outliers``           the statistical moving-window filter
+``outliers``           the statistical moving-window filter, and the image test
+                       (:func:`image_outlier_mask`) that rescues what it wrongly rejects
 ``coarse``             the coarse pass: :func:`fit_ground`
+``rectify``            :func:`load_calibration` (any format), :func:`rectify_pair`
+``frame``              whole frames: :func:`stereo_frame`, :func:`disparity_range`
 ``cloud``              :func:`stereo_to_cloud` and its paths
 =====================  ====================================================================
 
@@ -90,9 +103,16 @@ from rough_map.config import StereoCalibration
 from rough_map.io.images import read_image
 from rough_map.stereo.cloud import stereo_to_cloud
 from rough_map.stereo.coarse import fit_ground
+from rough_map.stereo.frame import StereoFrame, disparity_range, stereo_frame
 from rough_map.stereo.ground import Plane, ground_disparity, level_plane, plane_from_disparity
 from rough_map.stereo.matching import compute_disparity, equalize_subpixel
-from rough_map.stereo.outliers import statistical_outlier_filter, statistical_outlier_mask
+from rough_map.stereo.outliers import (
+    image_outlier_mask,
+    image_support,
+    statistical_outlier_filter,
+    statistical_outlier_mask,
+)
+from rough_map.stereo.rectify import load_calibration, rectify_pair
 from rough_map.stereo.settings import OutlierFilterConfig, SGBMConfig, StereoConfig
 from rough_map.stereo.triangulation import crop_to_patch, disparity_to_points, to_vehicle
 from rough_map.stereo.window import PatchWindow, patch_rows, patch_window
@@ -104,19 +124,26 @@ __all__ = [
     "SGBMConfig",
     "StereoCalibration",
     "StereoConfig",
+    "StereoFrame",
     "compute_disparity",
     "crop_to_patch",
+    "disparity_range",
     "disparity_to_points",
     "equalize_subpixel",
     "fit_ground",
     "ground_disparity",
+    "image_outlier_mask",
+    "image_support",
     "level_plane",
+    "load_calibration",
     "patch_rows",
     "patch_window",
     "plane_from_disparity",
     "read_image",
+    "rectify_pair",
     "statistical_outlier_filter",
     "statistical_outlier_mask",
+    "stereo_frame",
     "stereo_to_cloud",
     "to_vehicle",
 ]

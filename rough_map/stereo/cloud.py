@@ -13,11 +13,15 @@
   over ``height_tolerance``;
 * the patch path *without the prior* (``ground_prior`` off): the disparity itself over the
   window, optionally equalised (slower, kept for comparison);
-* the *full frame* (``restrict_to_patch=False``): every pixel, the config's disparities.
+* the *full frame* (``restrict_to_patch=False``): every pixel of
+  :func:`~rough_map.stereo.frame.stereo_frame`, over the disparities of ``min_depth`` to
+  ``max_depth`` (or the config's), any scene.
 
-Each ends with the statistical moving-window filter (:mod:`rough_map.stereo.outliers`);
-the patch paths run it on the heights above the ground plane searched, in windows aligned
-on the patch's corner.
+Each ends with an outlier filter (:mod:`rough_map.stereo.outliers`): the patch paths run the
+statistical moving-window filter on the heights above the ground plane searched, in windows
+aligned on the patch's corner; the full frame, which need not be ground, tests each pixel
+against its neighbours in the image (:func:`~rough_map.stereo.outliers.image_outlier_mask`).
+A calibration with a ``rectification`` rectifies the pair first.
 """
 
 from __future__ import annotations
@@ -30,11 +34,13 @@ from rough_map.config import StereoCalibration
 from rough_map.errors import InputError
 from rough_map.patch import PatchSpec
 from rough_map.stereo.coarse import fit_ground
+from rough_map.stereo.frame import stereo_frame
 from rough_map.stereo.ground import level_plane
-from rough_map.stereo.matching import check_pair, compute_disparity, sgbm_raw
-from rough_map.stereo.outliers import statistical_outlier_mask, window_outlier_mask
+from rough_map.stereo.matching import compute_disparity, sgbm_raw
+from rough_map.stereo.outliers import image_support, window_outlier_mask
+from rough_map.stereo.rectify import rectify_pair
 from rough_map.stereo.settings import StereoConfig
-from rough_map.stereo.triangulation import disparity_to_points, to_vehicle, window_cloud
+from rough_map.stereo.triangulation import disparity_to_points, to_vehicle, window_xyz
 from rough_map.stereo.window import PatchWindow, patch_window
 
 __all__ = ["stereo_to_cloud"]
@@ -55,13 +61,16 @@ def stereo_to_cloud(
     restrict_to_patch: bool = True,
     roll: float | None = None,
     pitch: float | None = None,
+    min_depth: float | None = None,
+    max_depth: float | None = None,
 ) -> np.ndarray:
-    """Point cloud in the vehicle frame from a rectified stereo pair (paper section 3.2).
+    """Point cloud in the vehicle frame from a stereo pair (paper section 3.2).
 
     Parameters
     ----------
     left, right : ndarray of uint8
-        Rectified images, gray ``(H, W)`` or BGR ``(H, W, 3)``, of the calibration's size.
+        Rectified images (raw ones if the calibration has a ``rectification``), gray
+        ``(H, W)`` or BGR ``(H, W, 3)``, of the calibration's size.
     calib : StereoCalibration
         The rig.
     config : StereoConfig, optional
@@ -76,14 +85,17 @@ def stereo_to_cloud(
         columns that see the patch (:func:`~rough_map.stereo.window.patch_window`) and on the
         residual to that plane's disparity over the relief only; the points over the patch
         footprint plus ``config.crop_margin`` and inside the relief band are returned, those
-        of every ``config.col_step``-th image column. If False, match the full frame with
-        the config's disparity range and return every valid point.
+        of every ``config.col_step``-th image column. If False, match the full frame
+        (:func:`~rough_map.stereo.frame.stereo_frame`) and return every valid point.
     roll, pitch : float, optional
         Vehicle tilt in rad (e.g. the IMU's; conventions of
         :func:`~rough_map.stereo.ground.level_plane`). The patch path then expects level
         ground rather than the vehicle's ``z = 0`` plane. It only centres the coarse search
         (or, without ``config.fit_ground``, the search itself); the cloud stays in the
         vehicle frame.
+    min_depth, max_depth : float, optional
+        Full frame: the depths searched, m (see
+        :func:`~rough_map.stereo.frame.disparity_range`); default the config's disparities.
 
     Returns
     -------
@@ -98,31 +110,14 @@ def stereo_to_cloud(
         outside the images.
     """
     config = config or StereoConfig()
-    left_g, right_g = check_pair(left, right, calib)
     patch = PatchSpec() if patch is None else patch
     if restrict_to_patch:
+        left_g, right_g = rectify_pair(left, right, calib)
         points = _patch_path(left_g, right_g, calib, config, patch, roll, pitch)
     else:
-        points = _full_frame(left_g, right_g, calib, config)
+        frame = stereo_frame(left, right, calib, config, min_depth=min_depth, max_depth=max_depth)
+        points = frame.vehicle_points()
     log.debug("stereo cloud: %d points", len(points))
-    return points
-
-
-def _full_frame(
-    left_g: np.ndarray, right_g: np.ndarray, calib: StereoCalibration, config: StereoConfig
-) -> np.ndarray:
-    """The full-frame path: every valid pixel, filtered; (N, 3) float64, m."""
-    disp = compute_disparity(
-        left_g,
-        right_g,
-        config.sgbm,
-        row_step=config.row_step,
-        equalize=config.equalize_subpixel,
-    )
-    points = to_vehicle(disparity_to_points(disp, calib, 0, config.row_step), calib)
-    f = config.outlier_filter
-    if f is not None:
-        points = points[statistical_outlier_mask(points, f.cell, f.k, f.min_tolerance, f.min_count)]
     return points
 
 
@@ -137,6 +132,8 @@ def _patch_path(
 ) -> np.ndarray:
     """The patch paths: the points over the patch, filtered; (N, 3) float64, m."""
     window = _search_window(left_g, right_g, calib, config, patch, roll, pitch)
+    f = config.outlier_filter
+    rescue = None
     if config.ground_prior:
         # Ground outside the searched volume (e.g. beyond the patch in the band's top rows)
         # can only match wrongly; such matches pile up at the ends of the search range
@@ -151,7 +148,7 @@ def _patch_path(
             config.row_step,
             window.prior,
         )
-        x, y, z, dz = window_cloud(
+        xs, ys, zs, dzs, inside = window_xyz(
             raw,
             calib,
             window,
@@ -160,21 +157,50 @@ def _patch_path(
             row_step=config.row_step,
             col_step=config.col_step,
         )
+        x, y, z, dz = xs[inside], ys[inside], zs[inside], dzs[inside]
+        if f is not None:
+            rescue = (raw[:, :: config.col_step], inside)
     else:
         x, y, z, dz = _disparity_cloud(left_g, right_g, calib, config, patch, window)
-    f = config.outlier_filter
     if f is not None and len(z):
         # Heights above the ground plane (not z): a sloping plane adds no spread to the
         # windows, which are aligned on the footprint's corner.
         half = patch.size / 2.0 + config.crop_margin
         corner = (patch.ahead - half, patch.lateral - half)
         keep = window_outlier_mask(x, y, dz, corner, f.cell, f.k, f.min_tolerance, f.min_count)
+        if rescue is not None:
+            _rescue_supported(keep, *rescue, f.radius, f.disparity_tolerance, f.support)
         x, y, z = x[keep], y[keep], z[keep]
     points = np.empty((len(z), 3))
     points[:, 0] = x
     points[:, 1] = y
     points[:, 2] = z
     return points
+
+
+def _rescue_supported(
+    keep: np.ndarray,
+    raw: np.ndarray,
+    inside: np.ndarray,
+    radius: int,
+    tolerance: float,
+    min_support: int,
+) -> None:
+    """Keep (in place) the points the ground windows rejected that their neighbours in the
+    image support (:func:`~rough_map.stereo.outliers.image_support`): relief steeper than a
+    window (a stone's flank, the floor beside an object, ploughed ridges) is not noise.
+    ``raw`` is the matcher's output (1/16 px) whose pixels ``inside`` gave the points."""
+    rejected = np.flatnonzero(~keep)
+    if not len(rejected):
+        return
+    disp = raw.astype(np.float32) * np.float32(1.0 / 16.0)
+    disp[~inside] = np.nan
+    pixels = np.flatnonzero(inside)[rejected]
+    supported = image_support(disp, pixels, radius, tolerance) >= min_support
+    keep[rejected[supported]] = True
+    log.debug(
+        "outliers: %d of %d rejected points supported in the image", supported.sum(), len(rejected)
+    )
 
 
 def _search_window(

@@ -281,8 +281,9 @@ def _gauss_newton_step(
 def scaled_calibration(calib: StereoCalibration, scale: int) -> StereoCalibration:
     """The rig seen through images binned ``scale`` x ``scale`` (pixel centres kept).
 
-    ``fx, fy, cx, cy`` and the image size (px) are divided by ``scale``; the baseline (m)
-    and the extrinsics are the rig's.
+    ``fx, fy, cx, cy, cx_right`` and the image size (px) are divided by ``scale``; the
+    baseline (m) and the extrinsics are the rig's (of the rectified pair: no
+    ``rectification``).
     """
     return calib.model_copy(
         update={
@@ -290,7 +291,9 @@ def scaled_calibration(calib: StereoCalibration, scale: int) -> StereoCalibratio
             "fy": calib.fy / scale,
             "cx": (calib.cx + 0.5) / scale - 0.5,
             "cy": (calib.cy + 0.5) / scale - 0.5,
+            "cx_right": None if calib.cx_right is None else (calib.cx_right + 0.5) / scale - 0.5,
             "width": calib.width // scale,
             "height": calib.height // scale,
+            "rectification": None,
         }
     )

@@ -65,7 +65,7 @@ def ground_disparity(
     i.e. ``g . p = pc`` with ``g = (-pa, -pb, 1)``. A left-camera ray through pixel ``(u, v)``
     with unit depth has vehicle-frame direction ``m = R (xn, yn, 1)``, ``xn = (u - cx) / fx``,
     ``yn = (v - cy) / fy``, from the camera centre ``t``; it meets the plane at depth
-    ``Z = (pc - g . t) / (g . m)``, so ``d0 = fx B / Z`` is affine in ``(u, v)``. Pixels
+    ``Z = (pc - g . t) / (g . m)``, so ``d0 = fx B / Z - doffs`` is affine in ``(u, v)``. Pixels
     looking above the horizon get ``d0 <= 0``.
 
     Returns
@@ -83,7 +83,7 @@ def ground_disparity(
     r20, r21, r22 = g @ transform[:3, :3]
     a = k * r20 / calib.fx
     b = k * r21 / calib.fy
-    c = k * (r22 - r20 * calib.cx / calib.fx - r21 * calib.cy / calib.fy)
+    c = k * (r22 - r20 * calib.cx / calib.fx - r21 * calib.cy / calib.fy) - calib.doffs
     return (float(a), float(b), float(c))
 
 
@@ -109,6 +109,7 @@ def plane_from_disparity(calib: StereoCalibration, prior: tuple[float, float, fl
         The disparity is of no plane under the camera.
     """
     al, be, ga = prior
+    ga += calib.doffs
     m = np.array([al * calib.fx, be * calib.fy, ga + al * calib.cx + be * calib.cy])
     transform = calib.T_vehicle_camera
     w = transform[:3, :3] @ m  # = k g, g = (-a, -b, 1), k = fx B / (c - g . t)

@@ -37,6 +37,9 @@ __all__ = ["check_pair", "compute_disparity", "equalize_subpixel", "sgbm_raw"]
 
 log = logging.getLogger(__name__)
 
+#: Pad the images on the left when matching without a prior (see :func:`sgbm_raw`).
+PAD_LEFT = True
+
 
 def _as_gray(image: np.ndarray, name: str) -> np.ndarray:
     """An 8-bit gray image from a gray or BGR one; ``name`` ("left", "right") for errors."""
@@ -139,6 +142,14 @@ def sgbm_raw(
         size = (a1 - a0, (b1 - b0) // row_step)
         left_band = cv2.resize(left_band, size, interpolation=cv2.INTER_AREA)
         right_band = cv2.resize(right_band, size, interpolation=cv2.INTER_AREA)
+    # OpenCV leaves the first min_d + num_d - 1 columns unmatched: without a prior, pad both
+    # images on the left (black) so that the left image's first columns are matched too
+    # (where their match is inside the right image; else the matcher sees black and its
+    # uniqueness test mostly rejects them).
+    pad = max(0, max_d + config.blockSize - (c0 - a0)) if prior is None and PAD_LEFT else 0
+    if pad:
+        left_band = cv2.copyMakeBorder(left_band, 0, 0, pad, 0, cv2.BORDER_CONSTANT, value=0)
+        right_band = cv2.copyMakeBorder(right_band, 0, 0, pad, 0, cv2.BORDER_CONSTANT, value=0)
     matcher = cv2.StereoSGBM.create(
         minDisparity=min_d,
         numDisparities=num_d,
@@ -154,7 +165,7 @@ def sgbm_raw(
     )
     raw = matcher.compute(np.ascontiguousarray(left_band), np.ascontiguousarray(right_band))
     first = (r0 - b0) // row_step
-    return raw[first : first + n_out, c0 - a0 : c1 - a0]
+    return raw[first : first + n_out, pad + c0 - a0 : pad + c1 - a0]
 
 
 def _disparity_range(config: SGBMConfig, disparities: tuple[int, int] | None) -> tuple[int, int]:

@@ -17,6 +17,8 @@ from rough_map.errors import InputError
 
 __all__ = [
     "MAD_TO_SIGMA",
+    "image_outlier_mask",
+    "image_support",
     "statistical_outlier_filter",
     "statistical_outlier_mask",
     "window_outlier_mask",
@@ -197,6 +199,84 @@ def _kth_deviation(
     last_lo = np.where(lo > 0, lower(lo - 1), dtype(-1))
     last_hi = np.where(q > 0, upper(q - 1), dtype(-1))
     return np.maximum(last_lo, last_hi)
+
+
+def image_outlier_mask(
+    disp: np.ndarray, radius: int = 2, tolerance: float = 0.5, min_support: int = 12
+) -> np.ndarray:
+    """Pixels of a disparity map that their neighbours in the image support.
+
+    A valid pixel is kept if at least ``min_support`` other valid pixels of the
+    ``(2 radius + 1)``-square around it have a disparity within ``tolerance`` px of its
+    own. Unlike the ground windows of :func:`statistical_outlier_filter`, nothing assumes
+    the scene is a height field: at a depth edge each side supports itself, so the floor
+    next to an object stays, while isolated mismatches (a wrong pixel or small clump in a
+    surface) have no support and go. Slanted surfaces change the disparity by a fraction
+    of a pixel per pixel and are supported too.
+
+    Parameters
+    ----------
+    disp : ndarray, shape (H, W)
+        Disparity, px, NaN where invalid.
+    radius : int
+        Half side of the neighbourhood, px.
+    tolerance : float
+        Largest disparity difference of a supporting neighbour, px.
+    min_support : int
+        Fewest supporting neighbours.
+
+    Returns
+    -------
+    ndarray of bool, shape (H, W)
+        True for the valid pixels kept (False where ``disp`` is NaN).
+    """
+    disp = np.asarray(disp, dtype=np.float32)
+    if disp.ndim != 2:
+        raise InputError(f"disp must be 2-D, got shape {disp.shape}")
+    if radius < 1 or min_support < 0 or not tolerance >= 0:
+        raise InputError(
+            f"need radius >= 1 px, min_support >= 0 and tolerance >= 0 px, got {radius}, "
+            f"{min_support}, {tolerance}"
+        )
+    height, width = disp.shape
+    padded = np.full((height + 2 * radius, width + 2 * radius), np.nan, dtype=np.float32)
+    padded[radius:-radius, radius:-radius] = disp
+    support = np.zeros(disp.shape, dtype=np.int16)
+    tol = np.float32(tolerance)
+    diff = np.empty(disp.shape, dtype=np.float32)
+    with np.errstate(invalid="ignore"):
+        for dv in range(2 * radius + 1):
+            for du in range(2 * radius + 1):
+                if dv == radius and du == radius:
+                    continue
+                np.subtract(padded[dv : dv + height, du : du + width], disp, out=diff)
+                np.abs(diff, out=diff)
+                support += diff <= tol  # False for NaN
+        return np.isfinite(disp) & (support >= min_support)
+
+
+def image_support(
+    disp: np.ndarray, index: np.ndarray, radius: int = 2, tolerance: float = 0.5
+) -> np.ndarray:
+    """How many neighbours support some pixels of a disparity map (see
+    :func:`image_outlier_mask`): for the pixels at flat ``index`` of ``disp`` (px, NaN
+    invalid), the number of other valid pixels of the ``(2 radius + 1)``-square around each
+    whose disparity is within ``tolerance`` px of its own. Cheap for a few pixels (the patch
+    path asks only about those the ground windows reject)."""
+    height, width = disp.shape
+    rows, cols = np.divmod(np.asarray(index, dtype=np.int64), width)
+    own = disp.reshape(-1)[index]
+    support = np.zeros(len(rows), dtype=np.int16)
+    with np.errstate(invalid="ignore"):
+        for dv in range(-radius, radius + 1):
+            for du in range(-radius, radius + 1):
+                if dv == 0 and du == 0:
+                    continue
+                r, c = rows + dv, cols + du
+                inside = (r >= 0) & (r < height) & (c >= 0) & (c < width)
+                other = disp[np.clip(r, 0, height - 1), np.clip(c, 0, width - 1)]
+                support += inside & (np.abs(other - own) <= tolerance)
+    return support
 
 
 def statistical_outlier_filter(

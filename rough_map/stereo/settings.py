@@ -30,11 +30,15 @@ class SGBMConfig(BaseModel):
     Attributes
     ----------
     minDisparity : int
-        Smallest disparity searched, px.
+        Smallest disparity searched, px, counted from the disparity at infinity (``-doffs``,
+        0 for a rig without ``cx_right``); only where no depths are given (see
+        :func:`~rough_map.stereo.frame.disparity_range`).
     numDisparities : int
-        Number of disparities searched, px, a positive multiple of 16. 256 covers depths from
-        ``fx B / 256`` = 0.92 m for the XB3-like rig; the patch path overrides both from the
-        geometry (see :func:`~rough_map.stereo.window.patch_window`).
+        Number of disparities searched, px, a positive multiple of 16, where no nearest
+        depth is given. 256 covers depths from ``fx B / 256`` = 0.92 m for the XB3-like rig;
+        the patch path derives its range from the geometry (see
+        :func:`~rough_map.stereo.window.patch_window`), the full frame from ``min_depth`` and
+        ``max_depth``.
     blockSize : int
         Odd matching block side, px.
     P1, P2 : int
@@ -91,6 +95,16 @@ class OutlierFilterConfig(BaseModel):
         window from rejecting everything when its MAD is about zero.
     min_count : int
         Windows with fewer points are dropped as isolated.
+    radius : int
+        The image test of whole frames (:func:`image_outlier_mask`, any scene): half side
+        of the neighbourhood of each pixel, px.
+    disparity_tolerance : float
+        The image test: largest disparity difference of a supporting neighbour, px.
+    support : int
+        The image test: fewest supporting neighbours a pixel needs.
+
+    The ground windows (``cell``, ``k``, ``min_tolerance``, ``min_count``) judge the patch
+    path's points, on the ground; the image test judges the full frame's pixels.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -99,6 +113,9 @@ class OutlierFilterConfig(BaseModel):
     k: float = Field(3.5, gt=0)
     min_tolerance: float = Field(0.003, ge=0)
     min_count: int = Field(3, ge=1)
+    radius: int = Field(2, ge=1, le=5)
+    disparity_tolerance: float = Field(0.5, ge=0)
+    support: int = Field(12, ge=0)
 
 
 class StereoConfig(BaseModel):

@@ -33,7 +33,8 @@ def disparity_to_points(
     Parameters
     ----------
     disp : ndarray, shape (h, W)
-        Disparity in px (NaN or <= 0 where invalid), e.g. from :func:`compute_disparity`.
+        Disparity in px (NaN or ``<= -doffs`` where invalid), e.g. from
+        :func:`compute_disparity`.
     calib : StereoCalibration
         The rig.
     rows_offset : int
@@ -46,15 +47,16 @@ def disparity_to_points(
     -------
     ndarray of float64, shape (N, 3)
         ``(X, Y, Z)`` in m in the left camera frame (OpenCV), one per valid pixel, in row-major
-        pixel order: ``Z = fx B / d``, ``X = (u - cx) Z / fx``, ``Y = (v - cy) Z / fy``.
+        pixel order: ``Z = fx B / (d + doffs)``, ``X = (u - cx) Z / fx``, ``Y = (v - cy) Z / fy``.
     """
     disp = np.asarray(disp)
     if disp.ndim != 2:
         raise InputError(f"disp must be 2-D, got shape {disp.shape}")
     height, width = disp.shape
+    doffs = calib.doffs
     with np.errstate(invalid="ignore"):
-        valid = disp > 0  # False for NaN
-    z = calib.focal_baseline / disp[valid].astype(np.float64)
+        valid = disp > -doffs  # False for NaN
+    z = calib.focal_baseline / (disp[valid].astype(np.float64) + doffs)
     # Normalised image coordinates per column and per row, picked per valid pixel.
     x_norm = (np.arange(width) - calib.cx) / calib.fx
     rows = rows_offset + row_step * np.arange(height) + 0.5 * (row_step - 1)
@@ -113,7 +115,7 @@ def reprojection(
             [1.0, 0.0, 0.0, -calib.cx],
             [0.0, ratio, 0.0, -calib.cy * ratio],
             [0.0, 0.0, 0.0, calib.fx],
-            [0.0, 0.0, 1.0 / calib.baseline, 0.0],
+            [0.0, 0.0, 1.0 / calib.baseline, calib.doffs / calib.baseline],
         ]
     )
     return calib.T_vehicle_camera @ to_camera @ to_image

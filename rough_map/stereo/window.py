@@ -131,11 +131,13 @@ def patch_window(
         max(0, math.floor(u.min()) - margin_px),
         min(calib.width, math.ceil(u.max()) + 1 + margin_px),
     )
-    disparities = _search_range(max(0, math.floor(d.min()) - 2), math.ceil(d.max()) + 2)
+    # Disparities above -doffs (in front of the camera): 0 up for a rig without doffs.
+    lowest = math.floor(-calib.doffs)
+    disparities = _search_range(max(lowest, math.floor(d.min()) - 2), math.ceil(d.max()) + 2)
     return PatchWindow(
         rows=rows,
         cols=cols,
-        disparities=(max(0, disparities[0]), disparities[1]),
+        disparities=(max(lowest, disparities[0]), disparities[1]),
         prior=prior,
         residual=residual,
         plane=(pa, pb, pc),
@@ -170,7 +172,7 @@ def _project_box(
         raise InputError("the patch of interest is behind or too close to the left camera")
     u = calib.fx * cam[:, 0] / cam[:, 2] + calib.cx
     v = calib.fy * cam[:, 1] / cam[:, 2] + calib.cy
-    d = calib.focal_baseline / cam[:, 2]
+    d = calib.focal_baseline / cam[:, 2] - calib.doffs
     # With clip, only the ground corners (dz = 0) must be inside the images.
     check = np.arange(len(u)) % 3 == 1 if clip else slice(None)
     uc, vc, dc = u[check], v[check], d[check]

@@ -49,6 +49,26 @@ Steps, per frame
    centres fall in it, or takes the tile its centre projects into when none does (far away
    one tile covers several cells).
 
+Knowing when it does not know
+-----------------------------
+* *Settled labels* (:func:`run_traverse`, ``settle``): only frames whose label every known
+  label within ``settle`` frames shares, with no isolated defect among them and a path
+  posterior of at least ``min_posterior``, teach appearance, so a smoothed label lagging a
+  change of ground does not teach the new look under the old name, nor one wrong geometric
+  label a look of its own. Learning waits ``settle`` frames (no prediction uses its own
+  frame's label or a later one).
+* *Calibrated confidence* (:mod:`.calibration`): every near label checks the model: its
+  near-field tiles scored before they are learnt, and the far cells predicted earlier
+  where the near field now lies (by the distance they were predicted from). A reliability
+  curve per distance bin (isotonic, shrunk, each class weighing the same) turns the raw
+  top probability into how often such predictions were right; the calibrated confidence
+  is never above the raw one. Nothing is confident before far predictions of two classes
+  were checked and two classes are in use. Cells below ``min_confidence`` are left out:
+  the model abstains (:attr:`FarPrediction.abstained`), and the map's ``far_confidence``
+  layer shows the fused confidence.
+* *Recall* of remembered cells needs ``recall_min_confidence`` (0.9): no wholesale
+  relabelling of ground seen earlier on weak evidence.
+
 Frames and units
 ----------------
 Vehicle frame x forward, y left, z up; camera frame OpenCV (x right, y down, z forward); world
@@ -60,8 +80,11 @@ Modules
 :mod:`.tiles` (image tiles, their features and ground points), :mod:`.looks` (the
 appearance model, :class:`LooksClassifier`: an X, y scikit-learn classifier of tile
 features), :mod:`.cells` (ground cells in view), :mod:`.prediction` (:class:`FarPrediction`),
-:mod:`.model` (:class:`NearToFar`), :mod:`.run` (:func:`run_traverse`). The scores against
-a known world are in :mod:`rough_map.evaluation.near_far`.
+:mod:`.model` (:class:`NearToFar`), :mod:`.run` (:func:`run_traverse`, :func:`settled`),
+:mod:`.calibration` (the reliability curves), :mod:`.settings` (``configs/near_far.yaml``,
+:class:`NearFarSettings`), :mod:`.checks` (parameter checks). The scores against a known
+world are in :mod:`rough_map.evaluation.near_far` and, on the path band against the
+nearest-near-field-cell baseline, :mod:`rough_map.evaluation.near_far_path`.
 
 Limits
 ------
@@ -77,7 +100,8 @@ from rough_map.map.near_far.cells import NearField
 from rough_map.map.near_far.looks import DEFAULT_MIN_STD, Looks, LooksClassifier
 from rough_map.map.near_far.model import NearToFar
 from rough_map.map.near_far.prediction import FarPrediction
-from rough_map.map.near_far.run import run_traverse
+from rough_map.map.near_far.run import run_traverse, settled
+from rough_map.map.near_far.settings import NearFarSettings, load_near_far_settings
 from rough_map.map.near_far.tiles import FEATURE_NAMES, tile_features
 
 __all__ = [
@@ -86,8 +110,11 @@ __all__ = [
     "FarPrediction",
     "Looks",
     "LooksClassifier",
+    "NearFarSettings",
     "NearField",
     "NearToFar",
+    "load_near_far_settings",
     "run_traverse",
+    "settled",
     "tile_features",
 ]

@@ -424,9 +424,25 @@ class LooksClassifier(ClassifierMixin, BaseEstimator):
         check_is_fitted(self, "looks_")
         x = self._validate_X(X, reset=False)
         k = len(self.classes_)
+        scores, d2 = self._scores(x)
+        if scores is None:
+            return np.full((len(x), k), 1.0 / k)
+        post = np.exp(scores - logsumexp(scores, axis=1, keepdims=True))
+        if self.novelty_alpha > 0:
+            tail = chi2.sf(d2.min(axis=1), df=x.shape[1])
+            known = np.clip(tail / self.novelty_alpha, 0.0, 1.0)[:, None]
+            post = known * post + (1.0 - known) / k
+        return post
+
+    def _scores(
+        self, x: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64] | None, NDArray[np.float64]]:
+        """Log class scores (N, K): the log of each class's share of the mixture density,
+        up to a constant per row, ``-inf`` for classes without a look in use (None while no
+        look is in use); and the squared distances (N, L) to the looks in use."""
         used, d2, var = self._distances(x)
         if not len(used):
-            return np.full((len(x), k), 1.0 / k)
+            return None, d2
         cls = self.looks_.cls[used]
         n = self.looks_.n[used]
         loglik = (
@@ -434,17 +450,10 @@ class LooksClassifier(ClassifierMixin, BaseEstimator):
             - 0.5 * d2
             - 0.5 * np.log(2.0 * np.pi * var).sum(axis=-1)[None]
         )
-        classes = np.unique(cls)
-        per_class = np.stack(
-            [logsumexp(loglik[:, cls == c], axis=1) for c in classes], axis=1
-        )  # (N, C)
-        post = np.zeros((len(x), k))
-        post[:, classes] = np.exp(per_class - logsumexp(per_class, axis=1, keepdims=True))
-        if self.novelty_alpha > 0:
-            tail = chi2.sf(d2.min(axis=1), df=x.shape[1])
-            known = np.clip(tail / self.novelty_alpha, 0.0, 1.0)[:, None]
-            post = known * post + (1.0 - known) / k
-        return post
+        scores = np.full((len(x), len(self.classes_)), -np.inf)
+        for c in np.unique(cls):
+            scores[:, c] = logsumexp(loglik[:, cls == c], axis=1)
+        return scores, d2
 
     def predict(self, X: ArrayLike) -> NDArray[Any]:
         """The most probable class label of each row, shape (N,)."""

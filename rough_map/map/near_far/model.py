@@ -11,7 +11,6 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
-from numbers import Real
 from typing import Any
 
 import numpy as np
@@ -21,7 +20,9 @@ from sklearn.base import BaseEstimator
 from rough_map.config import Pose, StereoCalibration
 from rough_map.errors import InputError, NotFittedError
 from rough_map.geometry import pose_matrix
+from rough_map.map.near_far.calibration import DistanceCalibration, apply_confidence, top_logit
 from rough_map.map.near_far.cells import GroundCells, NearField, cells_in_view
+from rough_map.map.near_far.checks import check_numbers, class_weights
 from rough_map.map.near_far.looks import DEFAULT_MIN_STD, Looks, LooksClassifier
 from rough_map.map.near_far.prediction import FarPrediction
 from rough_map.map.near_far.tiles import (
@@ -91,9 +92,21 @@ class NearToFar(BaseEstimator):
     max_looks : int
         Most looks kept per class; the least supported goes first.
     min_confidence : float
-        Cells whose largest class probability is below this are left out of the
-        predictions: unknown (NaN in a map) rather than a near-uniform row, which a map's
-        evidence fusion would count as seen. 0 keeps every cell in view.
+        Cells whose largest (calibrated) class probability is below this are left out of
+        the predictions: the model abstains, and they stay unknown (NaN in a map) rather
+        than take the likeliest class or a near-uniform row, which a map's evidence fusion
+        would count as seen. 0 keeps every cell in view. Their distances are kept
+        (:attr:`FarPrediction.abstained`).
+    calibrate : bool
+        Calibrate the confidence on checked predictions: near-field batches scored before
+        they are learnt, and far cells scored once the near field labels them (by the
+        distance they were predicted from; :mod:`~rough_map.map.near_far.calibration`).
+        The far cells are checked only when :meth:`update_tiles` gets the frame's pose
+        (:meth:`update`, :func:`~rough_map.map.near_far.run_traverse` pass it).
+    recall_min_confidence : float
+        A remembered cell is recalled only if its calibrated probability reaches this
+        (and ``min_confidence``): a recall labels ground that is no longer in view, all at
+        once, so it needs strong evidence.
 
     Attributes
     ----------
@@ -128,7 +141,9 @@ class NearToFar(BaseEstimator):
         memory_cells: int = 50_000,
         min_support: float = 2.0,
         max_looks: int = 8,
-        min_confidence: float = 0.5,
+        min_confidence: float = 0.8,
+        calibrate: bool = True,
+        recall_min_confidence: float = 0.9,
     ) -> None:
         self.classes = classes
         self.patch = patch
@@ -144,6 +159,8 @@ class NearToFar(BaseEstimator):
         self.min_support = min_support
         self.max_looks = max_looks
         self.min_confidence = min_confidence
+        self.calibrate = calibrate
+        self.recall_min_confidence = recall_min_confidence
 
     # ------------------------------------------------------------------------ validation
 
@@ -177,37 +194,13 @@ class NearToFar(BaseEstimator):
             max_looks=self.max_looks,
         )
         self._memory: dict[tuple[int, int], tuple[float, NDArray[np.float64]]] = {}
+        # far-field scores per cell, (distance, scores), until the near field labels it
+        self._pending: dict[tuple[int, int], list[tuple[float, float, int]]] = {}
+        self.distance_calibration_ = DistanceCalibration()
         self._recall_checked = 0
 
     def _check_numbers(self, near: NearField) -> None:
-        def integer(value: Any, low: int) -> bool:
-            return (
-                isinstance(value, int | np.integer)
-                and not isinstance(value, bool)
-                and bool(value >= low)
-            )
-
-        def positive(value: Any) -> bool:
-            number = isinstance(value, int | float | np.number) and not isinstance(value, bool)
-            return number and bool(value > 0)
-
-        if not integer(self.tile_px, 4):
-            raise InputError(f"tile_px must be an integer >= 4 px, got {self.tile_px!r}")
-        if not (positive(self.max_range) and self.max_range > near.ahead[1]):
-            raise InputError(
-                f"max_range ({self.max_range!r} m) must exceed the end of the near field "
-                f"({near.ahead[1]:g} m)"
-            )
-        if not positive(self.ground_step):
-            raise InputError(f"ground_step must be positive (m), got {self.ground_step!r}")
-        if not integer(self.min_near_tiles, 1):
-            raise InputError(f"min_near_tiles must be an integer >= 1, got {self.min_near_tiles!r}")
-        if not integer(self.memory_cells, 0):
-            raise InputError(f"memory_cells must be an integer >= 0, got {self.memory_cells!r}")
-        if not isinstance(self.recall, bool | np.bool_):
-            raise InputError(f"recall must be true or false, got {self.recall!r}")
-        if not (isinstance(self.min_confidence, Real) and 0.0 <= self.min_confidence <= 1.0):
-            raise InputError(f"min_confidence must be in [0, 1], got {self.min_confidence!r}")
+        check_numbers(self, near)
 
     # ------------------------------------------------------------------------ fitted state
 
@@ -256,30 +249,7 @@ class NearToFar(BaseEstimator):
 
     def _target(self, near_label: str | int | ArrayLike) -> NDArray[np.float64]:
         """Class weights (K,) of a near label: name, index or probability vector."""
-        classes = self.classes_
-        k = len(classes)
-        if isinstance(near_label, str):
-            if near_label not in classes:
-                raise InputError(f"unknown class label {near_label!r}; expected one of {classes}")
-            return np.eye(k)[classes.index(near_label)]
-        arr = np.asarray(near_label)
-        if arr.ndim == 0:
-            if not np.issubdtype(arr.dtype, np.integer) or not 0 <= int(arr) < k:
-                raise InputError(
-                    f"unknown class label {near_label!r}; expected a class name or an index "
-                    f"0..{k - 1}"
-                )
-            return np.eye(k)[int(arr)]
-        try:
-            p = arr.astype(float)
-        except (TypeError, ValueError):
-            p = np.full(0, np.nan)
-        if p.shape != (k,) or not np.all(np.isfinite(p)) or np.any(p < 0) or p.sum() <= 0:
-            raise InputError(
-                f"near probabilities must be {k} non-negative finite numbers (one per class "
-                f"{classes}), got {arr!r}"
-            )
-        return p / p.sum()
+        return class_weights(self.classes_, near_label)
 
     # ------------------------------------------------------------------------ learning
 
@@ -328,20 +298,73 @@ class NearToFar(BaseEstimator):
         tiles: NDArray[np.float64],
         calib: StereoCalibration,
         near_label: str | int | ArrayLike,
+        pose: Pose | ArrayLike | None = None,
+        *,
+        check: bool = True,
     ) -> NearToFar:
         """:meth:`update` from the image's :func:`~rough_map.map.near_far.tiles.tile_features`
-        (of ``tile_px`` px), e.g. computed once for :meth:`predict_tiles` and this."""
-        self._start()
+        (of ``tile_px`` px), e.g. computed once for :meth:`predict_tiles` and this. With
+        ``check``, :meth:`check_tiles` first."""
+        near = self._near_batch(calib)
         target = self._target(near_label)
+        if check:
+            self.check_tiles(tiles, calib, near_label, pose)
+        first = not hasattr(self.appearance_, "looks_")
+        self.appearance_.learn(tiles[near], target, classes=self.classes_ if first else None)
+        return self
+
+    def check_tiles(
+        self,
+        tiles: NDArray[np.float64],
+        calib: StereoCalibration,
+        near_label: str | int | ArrayLike,
+        pose: Pose | ArrayLike | None = None,
+    ) -> NearToFar:
+        """Check the model against a near label without learning it (the calibration):
+        the near-field tiles are scored before they are learnt (held out) and, with the
+        ``pose``, the far-field predictions made earlier of the cells under the near field
+        are scored against the label. Any label may check, a settled one or not
+        (:func:`~rough_map.map.near_far.run_traverse` checks every frame and learns only
+        the settled ones)."""
+        near = self._near_batch(calib)
+        target = self._target(near_label)
+        if not (self.calibrate and target.max() >= 0.5 and hasattr(self, "looks_")):
+            return self
+        raw = self.appearance_.predict_proba(tiles[near])
+        right = np.argmax(raw, axis=1) == np.argmax(target)
+        self.distance_calibration_.near.add(top_logit(raw), right, int(np.argmax(target)))
+        if pose is not None:
+            self._check_far(pose_matrix(pose), target)
+        return self
+
+    def _near_batch(self, calib: StereoCalibration) -> NDArray[np.bool_]:
+        """The near-field tiles (checked to be enough), after starting the model."""
+        self._start()
         near = self.near_tiles(calib)
         if near.sum() < self.min_near_tiles:
             raise InputError(
                 f"only {int(near.sum())} tiles of {self.tile_px} px see the near field "
                 f"{self.near_field_.ahead} m ahead; check the calibration or use smaller tiles"
             )
-        first = not hasattr(self.appearance_, "looks_")
-        self.appearance_.learn(tiles[near], target, classes=self.classes_ if first else None)
-        return self
+        return near
+
+    def _check_far(self, transform: NDArray[np.float64], target: NDArray[np.float64]) -> None:
+        """Calibration rows: earlier far-field scores of the cells under the near field."""
+        if not self._pending:
+            return
+        near = self.near_field_
+        step = self.ground_step / 2.0
+        ax = np.arange(near.ahead[0] + step / 2, near.ahead[1], step)
+        ay = np.arange(near.lateral[0] + step / 2, near.lateral[1], step)
+        gx, gy = np.meshgrid(ax, ay)
+        pts = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)])
+        world = pts @ transform[:3, :3].T + transform[:3, 3]
+        keys = np.unique(np.floor(world[:, :2] / self.ground_step).astype(np.int64), axis=0)
+        rows = [r for key in map(tuple, keys.tolist()) for r in self._pending.pop(key, [])]
+        if rows:
+            arr = np.array(rows)
+            right = arr[:, 2].astype(np.intp) == int(np.argmax(target))
+            self.distance_calibration_.add_far(arr[:, 1], right, arr[:, 0], int(np.argmax(target)))
 
     # ------------------------------------------------------------------------ prediction
 
@@ -447,15 +470,18 @@ class NearToFar(BaseEstimator):
             max_range=self.max_range,
             near=self.near_field_,
         )
-        proba, familiar = self._proba(cells.features)
+        proba, familiar = self._proba(cells.features, cells.distance, cells.keys)
         recalled = np.zeros(len(cells.x), dtype=bool)
         if self.recall:
             old = self._recall(cells, familiar, transform)
             if len(old.x):
-                old_proba, _ = self._proba(old.features)
+                old_proba, _ = self._proba(old.features, old.distance)
+                strong = old_proba.max(axis=1) >= self.recall_min_confidence
+                old = GroundCells.from_rows(old.keys[strong], _rows(old)[strong])
                 cells = GroundCells.concat(cells, old)
-                proba = np.concatenate([proba, old_proba])
+                proba = np.concatenate([proba, old_proba[strong]])
                 recalled = np.concatenate([recalled, np.ones(len(old.x), dtype=bool)])
+        confident = proba.max(axis=1, initial=0.0) >= self.min_confidence
         return FarPrediction(
             x=cells.x,
             y=cells.y,
@@ -467,19 +493,55 @@ class NearToFar(BaseEstimator):
             t=t,
             frame=frame,
             recalled=recalled,
-        ).select(proba.max(axis=1, initial=0.0) >= self.min_confidence)
+            abstained=cells.distance[~confident & ~recalled],
+        ).select(confident)
 
     def _proba(
-        self, features: NDArray[np.float64]
+        self,
+        features: NDArray[np.float64],
+        distance: NDArray[np.float64],
+        keys: NDArray[np.int64] | None = None,
     ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-        """Probabilities (N, K) and whether each row is familiar (N,)."""
+        """Probabilities (N, K), calibrated, and whether each row is familiar (N,), of cells
+        ``distance`` m away; with their ``keys``, the raw predictions are remembered until
+        the near field checks them."""
+        k = len(self.classes_)
         if not len(features):
-            return np.zeros((0, len(self.classes_))), np.zeros(0, dtype=bool)
+            return np.zeros((0, k)), np.zeros(0, dtype=bool)
         appearance = self.appearance_
         proba = appearance.predict_proba(features)
+        if self.calibrate:
+            s = top_logit(proba)
+            if keys is not None:
+                self._remember(keys, distance, s, np.argmax(proba, axis=1))
+            # calibration only lowers a confidence: the curve is extrapolated where few
+            # checked rows lie (a uniform row of unfamiliar ground must stay uniform); and
+            # nothing is confident before checks of two classes or more exist
+            q = self.distance_calibration_.confidence(s, distance)
+            q = np.where(np.isfinite(q), np.fmin(q, proba.max(axis=1)), 1.0 / k)
+            if self.seen_.sum() < 2:
+                # one class in use: every familiar tile is that class, whatever it is
+                q[:] = 1.0 / k
+            proba = apply_confidence(proba, q)
         if appearance.novelty_alpha == 0:
             return proba, np.ones(len(features), dtype=bool)
         return proba, appearance.familiarity(features) >= appearance.novelty_alpha
+
+    def _remember(
+        self,
+        keys: NDArray[np.int64],
+        distance: NDArray[np.float64],
+        s: NDArray[np.float64],
+        top: NDArray[np.intp],
+    ) -> None:
+        pending = self._pending
+        rows = zip(
+            map(tuple, keys.tolist()), distance.tolist(), s.tolist(), top.tolist(), strict=True
+        )
+        for key, d, logit, c in rows:
+            pending.setdefault(key, []).append((d, logit, c))
+        while len(pending) > self.memory_cells:
+            del pending[next(iter(pending))]
 
     def _recall(
         self, cells: GroundCells, familiar: NDArray[np.bool_], transform: NDArray[np.float64]
@@ -511,9 +573,15 @@ class NearToFar(BaseEstimator):
         if not candidates:
             return GroundCells.empty(len(FEATURE_NAMES))
         rows = np.array([memory[key][1] for key in candidates])
-        _, now_familiar = self._proba(rows[:, 5:])
+        _, now_familiar = self._proba(rows[:, 5:], rows[:, 4])
         out = [key for key, ok in zip(candidates, now_familiar, strict=True) if ok]
         for key in out:
             del memory[key]
         log.debug("near-to-far recall: %d cells became familiar", len(out))
         return GroundCells.from_rows(np.array(out, dtype=np.int64), rows[now_familiar])
+
+
+def _rows(cells: GroundCells) -> NDArray[np.float64]:
+    """The :meth:`GroundCells.row` arrays of all cells, shape (N, 5 + F)."""
+    head = np.column_stack([cells.x, cells.y, cells.ahead, cells.lateral, cells.distance])
+    return np.concatenate([head, cells.features], axis=1)

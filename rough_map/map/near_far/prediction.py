@@ -36,6 +36,10 @@ class FarPrediction:
         Cells predicted from their look in an earlier image (:class:`NearToFar` ``recall``);
         their ``ahead``, ``lateral`` and ``distance`` are those of that sighting. All false
         by default.
+    abstained : ndarray, shape (M,)
+        Distances from the vehicle (m) of the cells in view that the model left unknown,
+        their confidence being below its threshold (:class:`NearToFar` ``min_confidence``);
+        empty by default.
     """
 
     x: NDArray[np.float64]
@@ -48,6 +52,7 @@ class FarPrediction:
     t: float | None = None
     frame: int | None = None
     recalled: NDArray[np.bool_] | None = None
+    abstained: NDArray[np.float64] | None = None
 
     def __post_init__(self) -> None:
         n = np.shape(self.x)
@@ -62,6 +67,8 @@ class FarPrediction:
             object.__setattr__(self, "recalled", np.zeros(n, dtype=bool))
         elif np.shape(self.recalled) != n:
             raise InputError(f"FarPrediction.recalled must have shape {n} like x")
+        if self.abstained is None:
+            object.__setattr__(self, "abstained", np.zeros(0))
 
     def __len__(self) -> int:
         return int(self.x.size)
@@ -82,7 +89,7 @@ class FarPrediction:
         return self.proba.max(axis=1) if len(self) else np.zeros(0)
 
     def select(self, mask: ArrayLike) -> FarPrediction:
-        """The cells where the boolean ``mask`` (shape (N,)) is true."""
+        """The cells where the boolean ``mask`` (shape (N,)) is true (``abstained`` kept)."""
         m = np.asarray(mask, dtype=bool)
         if m.shape != self.x.shape:
             raise InputError(f"mask must have shape {self.x.shape}, got {m.shape}")
@@ -97,4 +104,5 @@ class FarPrediction:
             self.t,
             self.frame,
             self.recalled[m],  # type: ignore[index]
+            self.abstained,
         )

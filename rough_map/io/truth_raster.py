@@ -1,0 +1,247 @@
+"""Class rasters of surveyed (or simulated) ground truth: GeoTIFFs with class names.
+
+A truth raster is a single-band GeoTIFF (any CRS GDAL knows, any resolution) of integer
+class values, with a nodata value for cells without truth. Its class names come from the
+first of these that exists (the same convention as the map's ``*_class.tif``):
+
+1. a sidecar beside it, ``<stem>.classes.json`` — ``{"0": "gravel", "1": "concrete"}``
+   or a list of names (value = position) — or ``<stem>.classes.csv`` with the columns
+   ``value,name``;
+2. band-1 tags ``CLASS_<value>=<name>`` (GDAL metadata; ``gdal_edit.py -mo CLASS_3=gravel``
+   sets one), or a band/dataset tag ``class_names`` holding a JSON list (value = position);
+3. GDAL category names (``GDALSetRasterCategoryNames``: ``<CategoryNames>`` in the
+   ``<file>.aux.xml`` beside it, as GDAL and QGIS write them; value = position; empty names
+   are skipped).
+
+Names are compared lower-cased with spaces and dashes as underscores (``Dirt road`` is
+``dirt_road``). A value named ``unknown``, ``nodata`` or ``none`` means no truth, as does
+the nodata value.
+
+``rough-map simulate`` writes its world's classes so (:data:`TRUTH_GEOTIFF`, via
+:func:`write_truth_geotiff`): uint8, nodata 255, at the world's spacing (2 mm), north-up,
+in the traverse's CRS, names in the band-1 tags.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import re
+import xml.etree.ElementTree as ET
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rough_map._files import PathLike, atomic_output
+from rough_map.errors import FileFormatError, InputError
+from rough_map.io.truth import TiledWorld, World
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "NO_TRUTH_NAMES",
+    "TRUTH_GEOTIFF",
+    "TRUTH_NODATA",
+    "canonical_name",
+    "read_class_names",
+    "write_truth_geotiff",
+]
+
+#: File name of the class truth GeoTIFF in a simulated traverse folder.
+TRUTH_GEOTIFF = "world_truth.tif"
+
+#: Nodata of the truth GeoTIFFs rough_map writes (uint8).
+TRUTH_NODATA = 255
+
+#: Class names that mean "no truth here".
+NO_TRUTH_NAMES = frozenset({"unknown", "nodata", "none", "no_data"})
+
+
+def canonical_name(name: str) -> str:
+    """A class name as compared: stripped, lower case, spaces and dashes as underscores."""
+    return re.sub(r"[\s\-]+", "_", str(name).strip().lower())
+
+
+def _sidecars(path: Path) -> list[Path]:
+    stem = path.with_suffix("")
+    return [stem.with_name(f"{stem.name}.classes.json"), stem.with_name(f"{stem.name}.classes.csv")]
+
+
+def _from_json_sidecar(path: Path) -> dict[int, str]:
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise FileFormatError(path, f"not a JSON class-name file: {exc}") from None
+    if isinstance(data, list):
+        return {i: str(n) for i, n in enumerate(data)}
+    if isinstance(data, dict):
+        try:
+            return {int(k): str(v) for k, v in data.items()}
+        except ValueError:
+            raise FileFormatError(path, "keys must be integer class values", "keys") from None
+    raise FileFormatError(path, "expected a list of names or an object {value: name}")
+
+
+def _from_csv_sidecar(path: Path) -> dict[int, str]:
+    try:
+        with path.open(newline="", encoding="utf-8") as fh:
+            rows = list(csv.DictReader(fh))
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise FileFormatError(path, f"cannot read: {exc}") from None
+    if not rows or not {"value", "name"} <= set(rows[0]):
+        raise FileFormatError(path, "expected the columns value,name", "value,name")
+    try:
+        return {int(r["value"]): str(r["name"]) for r in rows}
+    except (TypeError, ValueError):
+        raise FileFormatError(path, "values must be integers", "value") from None
+
+
+def _from_tags(tags: Mapping[str, str], path: Path) -> dict[int, str]:
+    names = {int(k[6:]): v for k, v in tags.items() if re.fullmatch(r"CLASS_\d+", k, re.IGNORECASE)}
+    if names:
+        return names
+    if "class_names" in tags:
+        try:
+            listed = json.loads(tags["class_names"])
+        except ValueError:
+            raise FileFormatError(path, "not a JSON list", "class_names") from None
+        if not isinstance(listed, list):
+            raise FileFormatError(path, "not a JSON list", "class_names")
+        return {i: str(n) for i, n in enumerate(listed)}
+    return {}
+
+
+def _from_aux_xml(path: Path) -> dict[int, str]:
+    aux = path.with_name(f"{path.name}.aux.xml")
+    if not aux.is_file():
+        return {}
+    try:
+        root = ET.parse(aux).getroot()
+    except (OSError, ET.ParseError) as exc:
+        raise FileFormatError(aux, f"not GDAL PAM XML: {exc}") from None
+    band = root.find("PAMRasterBand[@band='1']")
+    cats = None if band is None else band.find("CategoryNames")
+    if cats is None:
+        return {}
+    return {i: (c.text or "") for i, c in enumerate(cats.findall("Category")) if c.text}
+
+
+def read_class_names(path: PathLike, dataset: Any = None) -> dict[int, str]:
+    """Class value -> name of a truth raster (the module docstring's conventions).
+
+    Parameters
+    ----------
+    path : str or Path
+        The GeoTIFF.
+    dataset : rasterio dataset, optional
+        ``path`` opened (else opened here).
+
+    Raises
+    ------
+    FileFormatError
+        No class names found, or a sidecar that cannot be read.
+    """
+    path = Path(path)
+    json_side, csv_side = _sidecars(path)
+    if json_side.is_file():
+        return _from_json_sidecar(json_side)
+    if csv_side.is_file():
+        return _from_csv_sidecar(csv_side)
+    if dataset is None:
+        import rasterio
+
+        with rasterio.open(path) as ds:
+            return read_class_names(path, ds)
+    names = _from_tags(dataset.tags(1), path) or _from_tags(dataset.tags(), path)
+    names = names or _from_aux_xml(path)
+    if not names:
+        raise FileFormatError(
+            path,
+            f"no class names: add {json_side.name} ({{value: name}}), band-1 tags "
+            "CLASS_<value>=<name>, or GDAL category names",
+            "class names",
+        )
+    return names
+
+
+def write_truth_geotiff(
+    world: World,
+    path: PathLike,
+    crs: Any,
+    *,
+    class_names: Sequence[str] | None = None,
+) -> Path:
+    """Write a world's class map as a truth GeoTIFF (uint8, nodata 255, DEFLATE, tiled).
+
+    Parameters
+    ----------
+    world : HeightField or TiledWorld
+        The world, with a class map; cell ``[i, j]`` is centred at ``origin + (j, i) *
+        spacing`` (m). A tiled world is written a tile at a time.
+    path : str or Path
+        The ``.tif`` to write (atomic).
+    crs : rasterio CRS or str
+        The CRS of the world's x, y (the traverse's).
+    class_names : sequence of str, optional
+        Names of the class indices (default ``world.class_names``).
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
+    import rasterio
+    from rasterio.transform import Affine
+    from rasterio.windows import Window
+
+    if not isinstance(world, TiledWorld) and world.classes is None:
+        raise InputError("the world has no class map to write as truth")
+    names = list(class_names if class_names is not None else world.class_names)
+    if len(names) >= TRUTH_NODATA:
+        raise InputError(f"{len(names)} classes do not fit a uint8 band with nodata 255")
+    ny, nx = world.shape
+    s = world.spacing
+    transform = Affine(s, 0.0, world.origin[0] - s / 2, 0.0, -s, world.origin[1] + (ny - 0.5) * s)
+    if isinstance(world, TiledWorld):
+        blocks = [(int(world.tile_columns[k]), world.tile_classes(k)) for k in range(world.n_tiles)]
+    else:
+        assert world.classes is not None
+        step = 4096  # columns at a time: small temporaries
+        blocks = [(c, world.classes[:, c : c + step]) for c in range(0, nx, step)]
+    path = Path(path)
+    with (
+        atomic_output(path) as tmp,
+        rasterio.open(
+            tmp,
+            "w",
+            driver="GTiff",
+            width=nx,
+            height=ny,
+            count=1,
+            dtype="uint8",
+            crs=crs,
+            transform=transform,
+            nodata=TRUTH_NODATA,
+            tiled=True,
+            blockxsize=256,
+            blockysize=256,
+            compress="deflate",
+            bigtiff="if_safer",
+        ) as ds,
+    ):
+        for c0, classes in blocks:
+            data = np.where(classes >= 0, classes, TRUTH_NODATA).astype(np.uint8)[::-1]
+            ds.write(data[None], window=Window(c0, 0, data.shape[1], ny))
+        ds.set_band_description(1, "class")
+        ds.update_tags(
+            1,
+            layer="class",
+            long_name="true terrain class index",
+            class_names=json.dumps(names),
+            **{f"CLASS_{i}": n for i, n in enumerate(names)},
+        )
+    log.info("wrote %s (%d x %d truth cells of %g m)", path, ny, nx, s)
+    return path
