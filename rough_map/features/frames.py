@@ -418,5 +418,21 @@ def _run_chunks(
         for f in futures.values():
             f.cancel()
         # The workers would idle for minutes holding their memory: the map's merge and
-        # export come next, and need it more.
+        # export come next, and need it more. So would loky's resource tracker (about
+        # 40 MB), which has nothing left to track; a later pass starts a new one.
         executor.shutdown(wait=True)
+        _stop_resource_tracker()
+
+
+def _stop_resource_tracker() -> None:
+    """Stop loky's resource-tracker process once no executor is left (POSIX)."""
+    from joblib.externals.loky.backend import resource_tracker
+
+    tracker = resource_tracker._resource_tracker
+    stop = getattr(tracker, "_stop", None)
+    if stop is None or os.name != "posix":
+        return
+    try:
+        stop()
+    except (OSError, RuntimeError) as exc:  # it is only memory: never fail the run for it
+        log.debug("could not stop loky's resource tracker: %s", exc)

@@ -127,20 +127,27 @@ def traverse_pass(
 
 #: Frames, spread along a traverse, whose density chooses its grid step.
 SPACING_SAMPLES = 9
+#: The same for stereo frames: a pair costs ~90 ms to match and stereo is dense at 1 m.
+STEREO_SPACING_SAMPLES = 3
 
 
 def resolve_spacing(traverse: Traverse, settings: FramePass) -> Extraction:
     """One grid step for every frame of a traverse (``spacing: auto``).
 
     The median number of points over the patch of up to :data:`SPACING_SAMPLES` frames
-    spread along the traverse chooses it (:func:`rough_map.patch.auto_spacing`), so that
+    (:data:`STEREO_SPACING_SAMPLES` stereo pairs) spread along the traverse chooses it
+    (:func:`rough_map.patch.auto_spacing`), so that
     every row of the features table has the same wavenumbers. The spacing asked for is kept
     when no sampled frame has points, or when they are too sparse for any step (the frames
     are then marked invalid, each saying why).
     """
     ex = settings.extraction
     jobs = frame_jobs(traverse)
-    picks = sorted({round(i) for i in np.linspace(0, len(jobs) - 1, SPACING_SAMPLES)})
+    stereo = settings.source == "stereo" or (
+        settings.source == "auto" and bool(jobs) and jobs[0].cloud is None
+    )
+    samples = STEREO_SPACING_SAMPLES if stereo else SPACING_SAMPLES
+    picks = sorted({round(i) for i in np.linspace(0, len(jobs) - 1, samples)})
     counts = []
     for i in picks if jobs else []:
         points, _ = read_points(jobs[i], settings)
