@@ -299,3 +299,46 @@ def test_captif_scan_reads_alike_at_stereo_densities(per_cell):
     assert abs(np.median(got[:, 1] - ref[:, 1])) <= 0.05
     if per_cell >= 12:
         assert np.median(np.abs(got[:, 1] - ref[:, 1])) <= 0.05
+
+
+def test_features_of_a_sparse_traverse_choose_one_coarser_grid(tmp_path):
+    """`rough-map features TRAVERSE` with the default --spacing auto on lidar-like clouds:
+    one step for every frame, reported with its band (stderr and --json)."""
+    import json
+    import subprocess
+    import sys
+
+    exe = [sys.executable, "-m", "rough_map"]
+    run = tmp_path / "run"
+    sim = ["simulate", "--out", str(run), "--course", "mixed", "--length", "3", "--seed", "2"]
+    subprocess.run(
+        [*exe, *sim, "--no-images", "--points-per-cell", "1.3", "-q"],
+        check=True,
+        capture_output=True,
+    )
+    out = subprocess.run(
+        [*exe, "features", str(run), "--out", str(tmp_path / "f.csv"), "--json"],
+        check=True,
+        capture_output=True,
+        text=True,
+    )
+    doc = json.loads(out.stdout)
+    assert doc["spacing_m"] == pytest.approx(0.0112)
+    assert doc["band_rad_per_m"][1] == pytest.approx(math.pi / 0.0112)
+    assert "11.2 mm grid (auto), band 7.0 to 280.5 rad/m" in out.stderr
+    fixed = subprocess.run(
+        [
+            *exe,
+            "features",
+            str(run),
+            "--out",
+            str(tmp_path / "g.csv"),
+            "--json",
+            "--spacing",
+            "0.008",
+        ],
+        check=True,
+        capture_output=True,
+        text=True,
+    )
+    assert json.loads(fixed.stdout)["spacing_m"] == pytest.approx(0.008)

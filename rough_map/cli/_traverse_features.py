@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import math
+
+import numpy as np
 
 from rough_map.cli._common import emit_json, patch_spec, status, table
 from rough_map.errors import InputError
@@ -40,7 +43,14 @@ def run_traverse(args: argparse.Namespace) -> int:
     feats = smooth_table(feats)  # R_smooth, w_smooth and their sigmas along the path
     write_features(feats, args.out)
     valid = feats.valid
-    status(args, f"wrote {len(feats)} frames ({int((~valid).sum())} invalid) to {args.out}")
+    omega = np.asarray(feats.omega, dtype=float)
+    step = math.pi / omega[-1] if omega.size else math.nan  # the band ends at pi / B
+    band = f"{omega[0]:.1f} to {omega[-1]:.1f} rad/m" if omega.size else "none"
+    status(
+        args,
+        f"wrote {len(feats)} frames ({int((~valid).sum())} invalid) to {args.out}; "
+        f"{step * 1e3:.1f} mm grid{' (auto)' if extraction.auto_spacing else ''}, band {band}",
+    )
     summary = {lab or "(unlabelled)": s for lab, s in label_summary(feats).items()}
     if args.json:
         emit_json(
@@ -48,6 +58,8 @@ def run_traverse(args: argparse.Namespace) -> int:
                 "file": str(args.out),
                 "metadata": None if parquet else str(features_metadata_path(args.out)),
                 "frames": len(feats),
+                "spacing_m": step,
+                "band_rad_per_m": [float(omega[0]), float(omega[-1])] if omega.size else None,
                 "invalid": int((~valid).sum()),
                 "summary": summary,
             }
