@@ -49,9 +49,8 @@ from rough_map.stereo import (
     read_image,
     stereo_to_cloud,
 )
-from rough_map.stereo.matching import sgbm_raw
+from rough_map.stereo.matching import sgbm_matcher, sgbm_raw
 from rough_map.stereo.outliers import window_outlier_mask
-from rough_map.stereo.settings import SGBM_MODES
 from rough_map.stereo.triangulation import window_cloud
 from rough_map.types import HeightField
 
@@ -197,19 +196,7 @@ def main() -> None:
             f"average {os.getloadavg()[0]:.1f}; {len(frames)} frame(s) of {name}, "
             f"median CPU ms of {args.reps} repetitions"
         )
-        plain = cv2.StereoSGBM.create(
-            minDisparity=config.sgbm.minDisparity,
-            numDisparities=config.sgbm.numDisparities,
-            blockSize=config.sgbm.blockSize,
-            P1=config.sgbm.P1,
-            P2=config.sgbm.P2,
-            disp12MaxDiff=config.sgbm.disp12MaxDiff,
-            preFilterCap=config.sgbm.preFilterCap,
-            uniquenessRatio=config.sgbm.uniquenessRatio,
-            speckleWindowSize=config.sgbm.speckleWindowSize,
-            speckleRange=config.sgbm.speckleRange,
-            mode=SGBM_MODES[config.sgbm.mode],
-        )
+        plain = sgbm_matcher(config.sgbm, config.sgbm.minDisparity, config.sgbm.numDisparities)
         rows: dict[str, list[float]] = {"pipeline": [], "decode": [], "plain SGBM": []}
         stages: dict[str, list[float]] = {}
         for frame in frames:

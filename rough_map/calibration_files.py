@@ -241,20 +241,30 @@ def camera_info_values(
             f"P[0,3] = -fx * baseline must be negative, got {p2[0, 3]}",
             "projection_matrix",
         )
-    values: dict[str, Any] = {
+    values = _rectified_values(
+        p1, p2, left["size"], _rectified_pose(camera_to_vehicle, left_path, left["R"])
+    )
+    raw = (left["K"], left["D"], left["R"], right["K"], right["D"], right["R"])
+    values["rectification"] = _rectification(raw, (p1, p2))
+    return values
+
+
+def _rectified_values(
+    p1: np.ndarray, p2: np.ndarray, size: Any, camera_to_vehicle: Any
+) -> dict[str, Any]:
+    """The :class:`~rough_map.config.StereoCalibration` fields of a rectified pair from its
+    3 x 4 projection matrices (px; ``P2[0, 3] = -fx * baseline``, baseline in m)."""
+    return {
         "fx": float(p1[0, 0]),
         "fy": float(p1[1, 1]),
         "cx": float(p1[0, 2]),
         "cy": float(p1[1, 2]),
         "cx_right": float(p2[0, 2]),
-        "width": left["size"][0],
-        "height": left["size"][1],
-        "baseline": float(baseline),
-        "camera_to_vehicle": _rectified_pose(camera_to_vehicle, left_path, left["R"]),
+        "width": size[0],
+        "height": size[1],
+        "baseline": float(-p2[0, 3] / p2[0, 0]),
+        "camera_to_vehicle": camera_to_vehicle,
     }
-    raw = (left["K"], left["D"], left["R"], right["K"], right["D"], right["R"])
-    values["rectification"] = _rectification(raw, (p1, p2))
-    return values
 
 
 def _rectification(
@@ -427,16 +437,8 @@ def opencv_values(path: str | Path, camera_to_vehicle: Any = None) -> dict[str, 
             "(P2[0,3] must be negative, P2[1,3] zero)",
             "T",
         )
-    values: dict[str, Any] = {
-        "fx": float(p1[0, 0]),
-        "fy": float(p1[1, 1]),
-        "cx": float(p1[0, 2]),
-        "cy": float(p1[1, 2]),
-        "cx_right": float(p2[0, 2]),
-        "width": size[0],
-        "height": size[1],
-        "baseline": float(-p2[0, 3] / p2[0, 0]),
-        "camera_to_vehicle": _rectified_pose(camera_to_vehicle, path, np.asarray(r1)),
-    }
+    values = _rectified_values(
+        p1, p2, size, _rectified_pose(camera_to_vehicle, path, np.asarray(r1))
+    )
     values["rectification"] = _rectification((m1, d1, r1, m2, d2, r2), (p1, p2))
     return values

@@ -27,7 +27,7 @@ from rough_map.stereo import (
     load_calibration,
     stereo_frame,
 )
-from rough_map.stereo.settings import SGBM_MODES
+from rough_map.stereo.matching import sgbm_matcher
 
 cv2 = pytest.importorskip("cv2")
 
@@ -47,19 +47,7 @@ def motorcycle():
 
 def plain_sgbm(left, right, config: SGBMConfig, disparities) -> np.ndarray:
     """OpenCV StereoSGBM as it comes: float32 px, NaN where invalid."""
-    matcher = cv2.StereoSGBM.create(
-        minDisparity=disparities[0],
-        numDisparities=disparities[1],
-        blockSize=config.blockSize,
-        P1=config.P1,
-        P2=config.P2,
-        disp12MaxDiff=config.disp12MaxDiff,
-        preFilterCap=config.preFilterCap,
-        uniquenessRatio=config.uniquenessRatio,
-        speckleWindowSize=config.speckleWindowSize,
-        speckleRange=config.speckleRange,
-        mode=SGBM_MODES[config.mode],
-    )
+    matcher = sgbm_matcher(config, disparities[0], disparities[1])
     raw = matcher.compute(left, right)
     plain = raw.astype(np.float32) / 16
     plain[raw < 16 * disparities[0]] = np.nan

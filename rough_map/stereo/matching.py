@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import math
+from typing import Any
 
 import numpy as np
 
@@ -150,9 +151,20 @@ def sgbm_raw(
     if pad:
         left_band = cv2.copyMakeBorder(left_band, 0, 0, pad, 0, cv2.BORDER_CONSTANT, value=0)
         right_band = cv2.copyMakeBorder(right_band, 0, 0, pad, 0, cv2.BORDER_CONSTANT, value=0)
-    matcher = cv2.StereoSGBM.create(
-        minDisparity=min_d,
-        numDisparities=num_d,
+    matcher = sgbm_matcher(config, min_d, num_d)
+    raw = matcher.compute(np.ascontiguousarray(left_band), np.ascontiguousarray(right_band))
+    first = (r0 - b0) // row_step
+    return raw[first : first + n_out, pad + c0 - a0 : pad + c1 - a0]
+
+
+def sgbm_matcher(config: SGBMConfig, min_disparity: int, num_disparities: int) -> Any:
+    """OpenCV's ``StereoSGBM`` with ``config``'s parameters over ``min_disparity`` to
+    ``min_disparity + num_disparities`` px (a multiple of 16)."""
+    import cv2
+
+    return cv2.StereoSGBM.create(
+        minDisparity=min_disparity,
+        numDisparities=num_disparities,
         blockSize=config.blockSize,
         P1=config.P1,
         P2=config.P2,
@@ -163,9 +175,6 @@ def sgbm_raw(
         speckleRange=config.speckleRange,
         mode=SGBM_MODES[config.mode],
     )
-    raw = matcher.compute(np.ascontiguousarray(left_band), np.ascontiguousarray(right_band))
-    first = (r0 - b0) // row_step
-    return raw[first : first + n_out, pad + c0 - a0 : pad + c1 - a0]
 
 
 def _disparity_range(config: SGBMConfig, disparities: tuple[int, int] | None) -> tuple[int, int]:
