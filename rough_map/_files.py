@@ -1,48 +1,399 @@
-"""File helpers shared by every writer: atomic replacement of a file.
+"""File helpers shared by every writer: atomic replacement of a file, write errors, leftovers.
 
 A writer writes a temporary file in the same folder and ``os.replace`` s it onto the target,
 so a reader never sees half a file and an interrupted run leaves the old file as it was.
+Before the rename the temporary file is checked (it exists, is not empty, a GeoTIFF reopens
+and its last block reads back) and flushed to the disk (``fsync``): a full disk that a
+library reported without raising (GDAL) never leaves a truncated file under the final name.
+An ``OSError`` while writing (full disk, read-only folder) becomes a one-line
+:class:`~rough_map.errors.FileFormatError` naming the file.
+
+Temporary names start with a dot and hold ``.tmp`` (:data:`TMP_FILE`, and the staged
+folders of :mod:`rough_map._output_set`); those a killed run left behind are removed by the
+next run that writes to the same place (only those older than this process).
 """
 
 from __future__ import annotations
 
+import errno
+import logging
 import os
+import re
+import shutil
+import sys
+import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
 from rough_map.errors import FileFormatError
 
-__all__ = ["PathLike", "atomic_output"]
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "RUN_START",
+    "TMP_FILE",
+    "PathLike",
+    "atomic_output",
+    "clean_dead_temp_dirs",
+    "clean_stale",
+    "fsync_dir",
+    "gdal_errors",
+    "is_temp_name",
+    "make_dir",
+    "verify_file",
+    "write_error",
+]
 
 PathLike = str | os.PathLike[str]
 
+#: When this process started writing (s since the epoch): leftovers older than this are
+#: removed, those of a run going on at the same time are not.
+RUN_START = time.time()
+
+#: Temporary file of :func:`atomic_output` (and its side files, e.g. a GeoTIFF's
+#: intermediate ``.<stem>.<hex>.tmp.src.tif``): ``.<stem>.<12 hex>.tmp<anything>``.
+TMP_FILE = re.compile(r"^\..+\.[0-9a-f]{12}\.tmp(\..*)?$")
+#: Staged or set-aside folders (:mod:`rough_map._output_set`): ``.<name>.tmp.<12 hex>`` and
+#: ``.<name>.old.<12 hex>``; and those of rough_map 0.x's batch (``.<name>.<8 hex>.partial``
+#: / ``.old``).
+TMP_DIR = re.compile(r"^\..+\.(tmp|old)\.[0-9a-f]{12}$|^\..+\.[0-9a-f]{8}\.(partial|old)$")
+
+
+#: Suffixes of files that cannot be empty (a CSV or a text cloud of nothing can).
+_NEVER_EMPTY = frozenset(
+    (".tif", ".tiff", ".png", ".json", ".npz", ".npy", ".skops", ".zip", ".html", ".yaml")
+    + (".las", ".laz", ".ply", ".pcd", ".mcap", ".parquet")
+)
+#: Folders whose leftovers :func:`atomic_output` removed already in this process.
+_CLEANED: set[str] = set()
+
+
+def is_temp_name(name: str) -> bool:
+    """Whether ``name`` is one of rough_map's temporary names (file or folder)."""
+    return bool(TMP_FILE.match(name) or TMP_DIR.match(name))
+
+
+def write_error(path: PathLike, exc: BaseException) -> FileFormatError:
+    """The one-line error of a failed write of ``path`` (from an ``OSError`` or a GDAL error)."""
+    if isinstance(exc, FileFormatError):
+        return exc
+    if isinstance(exc, OSError) and exc.strerror:
+        reason = exc.strerror
+    else:
+        reason = " ".join(str(exc).split()) or type(exc).__name__
+    if len(reason) > 120:
+        reason = reason[:117] + "..."
+    return FileFormatError(Path(path), f"cannot write: {reason}")
+
 
 @contextmanager
-def atomic_output(path: PathLike) -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; on success move it onto ``path``.
+def gdal_errors(path: PathLike) -> Iterator[None]:
+    """Turn what GDAL (rasterio) reports while writing ``path`` into a one-line error.
+
+    rasterio's exceptions (:class:`rasterio.errors.RasterioError`, GDAL's ``CPLE_*``) and
+    ``OSError`` become :class:`~rough_map.errors.FileFormatError` naming ``path``. GDAL and
+    libtiff also print some errors straight to the process's standard error without
+    raising (a full disk: ``_tiffWriteProc: No space left on device``): the native standard
+    error is captured meanwhile, and such a message (:data:`_GDAL_ERROR`) is an error too,
+    whether or not anything raised; other lines are shown on standard error as they were.
+
+    Raises
+    ------
+    FileFormatError
+        Naming ``path``.
+    """
+    import tempfile
+
+    from rasterio._err import CPLE_BaseError
+    from rasterio.errors import RasterioError
+
+    captured = None
+    saved = -1
+    try:
+        captured = tempfile.TemporaryFile()
+        sys.stderr.flush()
+        saved = os.dup(2)
+        os.dup2(captured.fileno(), 2)
+    except OSError:  # no room for the capture: GDAL's messages go to stderr as they are
+        if captured is not None:
+            captured.close()
+        captured = None
+    failure: BaseException | None = None
+    try:
+        yield
+    except (OSError, RasterioError, CPLE_BaseError) as exc:
+        failure = exc
+    finally:
+        text = ""
+        if captured is not None:
+            os.dup2(saved, 2)
+            os.close(saved)
+            try:
+                captured.seek(0)
+                text = captured.read(64_000).decode("utf-8", "replace")
+            except OSError:
+                text = ""
+            captured.close()
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    errors = [ln for ln in lines if _GDAL_ERROR.search(ln)]
+    others = [ln for ln in lines if ln not in errors]
+    if others:  # not ours to judge (a log line, a GDAL warning): shown as it was
+        try:
+            os.write(2, ("\n".join(others) + "\n").encode())
+        except OSError:
+            pass
+    if failure is not None:
+        reason = failure if not errors else OSError(0, _gdal_reason(errors))
+        raise write_error(path, reason) from None
+    if errors:
+        raise FileFormatError(Path(path), f"cannot write: {_gdal_reason(errors)}")
+
+
+#: What GDAL or libtiff print when a write fails without raising.
+_GDAL_ERROR = re.compile(
+    r"^ERROR \d+:|No space left|Read-only file system|Permission denied|Disk quota|"
+    r"I/O error|IO error|[Ww]rite error|Input/output error|Cannot (write|open)"
+)
+
+
+def _gdal_reason(lines: list[str]) -> str:
+    """The most telling of GDAL's error lines (the system's reason, when one says it)."""
+    for ln in lines:
+        if ":" in ln and any(w in ln for w in ("No space", "Read-only", "Permission", "quota")):
+            return ln.rsplit(":", 1)[1].strip().rstrip(".") or ln
+    return lines[0]
+
+
+def make_dir(folder: PathLike) -> Path:
+    """Create ``folder`` and its parents (if missing); a failure is a one-line error.
+
+    Raises
+    ------
+    FileFormatError
+        Naming ``folder`` (a file in the way, a read-only or full disk).
+    """
+    path = Path(folder)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise write_error(path, exc) from None
+    return path
+
+
+def fsync_dir(folder: PathLike) -> None:
+    """Flush a folder's entries (after a rename in it); ignored where unsupported."""
+    try:
+        fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass  # the rename is done; a folder that cannot be flushed is no error
+    finally:
+        os.close(fd)
+
+
+def _fsync_file(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    except OSError as exc:
+        if exc.errno not in (errno.EINVAL, errno.EBADF, errno.ENOTSUP):
+            raise
+    finally:
+        os.close(fd)
+
+
+def verify_file(path: Path, final: Path) -> None:
+    """Check a written temporary file before it takes ``final`` 's name.
+
+    It must exist and not be empty (unless a CSV or text file); a GeoTIFF (``.tif``,
+    ``.tiff``) must reopen and its last block of every band read back; a PNG must pass
+    PIL's check of its chunks. Then it is flushed to the disk.
+
+    Raises
+    ------
+    FileFormatError
+        Naming ``final``.
+    """
+    if not path.is_file():
+        raise FileFormatError(final, "cannot write: the file was not written")
+    if path.stat().st_size == 0 and final.suffix.lower() in _NEVER_EMPTY:
+        raise FileFormatError(final, "cannot write: the file came out empty (disk full?)")
+    suffix = final.suffix.lower()
+    if suffix in (".tif", ".tiff"):
+        _verify_geotiff(path, final)
+    elif suffix == ".png":
+        _verify_png(path, final)
+    _fsync_file(path)
+
+
+def _verify_geotiff(path: Path, final: Path) -> None:
+    import rasterio
+    from rasterio.windows import Window
+
+    try:
+        with rasterio.Env(), rasterio.open(path) as ds:
+            bx, by = ds.block_shapes[0][1], ds.block_shapes[0][0]
+            c0, r0 = ((ds.width - 1) // bx) * bx, ((ds.height - 1) // by) * by
+            window = Window(c0, r0, ds.width - c0, ds.height - r0)
+            ds.read(window=window)
+            ds.read(1, window=Window(0, 0, min(bx, ds.width), min(by, ds.height)))
+    except Exception as exc:  # rasterio's and GDAL's errors of a truncated file
+        raise FileFormatError(
+            final, f"cannot write: the GeoTIFF does not read back ({_short(exc)})"
+        ) from None
+
+
+def _verify_png(path: Path, final: Path) -> None:
+    from PIL import Image
+
+    try:
+        with Image.open(path) as img:
+            img.verify()
+    except Exception as exc:  # PIL's errors of a truncated file
+        raise FileFormatError(
+            final, f"cannot write: the PNG does not read back ({_short(exc)})"
+        ) from None
+
+
+def _short(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def clean_stale(folder: PathLike, match: Callable[[str], bool] | None = None) -> int:
+    """Remove rough_map's temporary files and folders in ``folder`` left by killed runs.
+
+    Only names of :func:`is_temp_name` (and, when given, ``match``), and only those last
+    modified before this process started (:data:`RUN_START`), so a run going on at the same
+    time keeps its own.
+
+    Returns
+    -------
+    int
+        How many were removed.
+    """
+    removed = 0
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return 0
+    for entry in entries:
+        if not is_temp_name(entry.name) or (match is not None and not match(entry.name)):
+            continue
+        try:
+            if entry.stat(follow_symlinks=False).st_mtime >= RUN_START:
+                continue
+            if entry.is_dir(follow_symlinks=False):
+                shutil.rmtree(entry.path)
+            else:
+                os.unlink(entry.path)
+        except OSError as exc:
+            log.debug("cannot remove %s: %s", entry.path, exc)
+            continue
+        log.info("removed %s, left by an interrupted run", entry.path)
+        removed += 1
+    return removed
+
+
+def clean_dead_temp_dirs(prefix: str) -> int:
+    """Remove folders ``<prefix><pid>_*`` of the system's temporary folder whose process is
+    gone (a killed run's); those of live processes are kept.
+
+    Returns
+    -------
+    int
+        How many were removed.
+    """
+    import tempfile
+
+    removed = 0
+    pattern = re.compile(re.escape(prefix) + r"(\d+)_")
+    try:
+        entries = list(os.scandir(tempfile.gettempdir()))
+    except OSError:
+        return 0
+    for entry in entries:
+        m = pattern.match(entry.name)
+        if m is None or not entry.is_dir(follow_symlinks=False):
+            continue
+        pid = int(m.group(1))
+        if pid == os.getpid() or _alive(pid):
+            continue
+        shutil.rmtree(entry.path, ignore_errors=True)
+        log.info("removed %s, left by an interrupted run", entry.path)
+        removed += 1
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True
+    return True
+
+
+def temp_name(path: Path) -> Path:
+    """A fresh temporary name next to ``path`` keeping its suffix (see :data:`TMP_FILE`)."""
+    return path.with_name(f".{path.stem}.{uuid.uuid4().hex[:12]}.tmp{path.suffix}")
+
+
+@contextmanager
+def atomic_output(path: PathLike, *, verify: bool = True) -> Iterator[Path]:
+    """Yield a temporary path next to ``path``; on success check it and move it onto ``path``.
 
     The temporary name keeps the suffix of ``path`` (backends such as open3d and laspy pick
     the format from it) and starts with a dot. On error the temporary file is removed and
-    ``path`` is left untouched.
+    ``path`` is left untouched. Temporary files of ``path`` that a killed run left are
+    removed first.
 
     Parameters
     ----------
     path : str or PathLike
         The final file. Its folder must exist.
+    verify : bool
+        Check the file before the rename (:func:`verify_file`); False for a folder.
 
     Yields
     ------
     Path
         Where to write.
+
+    Raises
+    ------
+    FileFormatError
+        The folder is missing, or writing failed (full disk, read-only folder: the message
+        names ``path`` and the reason).
     """
     path = Path(path)
     if not path.parent.is_dir():
         raise FileFormatError(path, f"cannot write: folder {path.parent} does not exist")
-    tmp = path.with_name(f".{path.stem}.{uuid.uuid4().hex[:12]}.tmp{path.suffix}")
+    folder = os.path.abspath(path.parent)
+    if folder not in _CLEANED:  # once a folder per process: a folder of many files stays fast
+        _CLEANED.add(folder)
+        clean_stale(folder, lambda name: bool(TMP_FILE.match(name)))
+    tmp = temp_name(path)
     try:
-        yield tmp
-        os.replace(tmp, path)
+        try:
+            yield tmp
+            if verify:
+                verify_file(tmp, path)
+            os.replace(tmp, path)
+        except OSError as exc:
+            raise write_error(path, exc) from None
+        fsync_dir(path.parent)
     finally:
-        tmp.unlink(missing_ok=True)
+        try:
+            if tmp.is_dir() and not tmp.is_symlink():
+                shutil.rmtree(tmp, ignore_errors=True)
+            else:
+                tmp.unlink(missing_ok=True)
+        except OSError:
+            pass

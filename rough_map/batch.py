@@ -17,8 +17,10 @@ whatever order the work ran.
 A batch is resumable: a traverse whose folder holds a ``batch.json`` with the same
 fingerprint (the traverse file's and the model's SHA-256, the settings, the rough_map
 version) is not mapped again. Each traverse's folder is written as a set: into a hidden
-temporary folder, renamed into place only when complete, so a killed run leaves either the
-old folder or the new one, never half of one.
+staging folder swapped in whole when complete (:func:`rough_map._output_set.output_set`),
+so a killed run leaves either the old folder or the new one, never half of one; a finished
+traverse stays done. The fused map at the top is a set too: the whole of ``OUT`` is staged
+(the traverses' folders and the user's files carried over by hard links) and swapped in.
 """
 
 from __future__ import annotations
@@ -35,7 +37,14 @@ from pathlib import Path
 from typing import Any
 
 from rough_map import __version__
-from rough_map._files import PathLike, atomic_output
+from rough_map._files import (
+    PathLike,
+    atomic_output,
+    clean_dead_temp_dirs,
+    clean_stale,
+    write_error,
+)
+from rough_map._output_set import output_set, recover
 from rough_map.classify import sha256_file
 from rough_map.errors import InputError
 from rough_map.export import export_map
@@ -47,6 +56,13 @@ from rough_map.workflow import analyse, summary, write_outputs
 log = logging.getLogger(__name__)
 
 __all__ = ["BatchJob", "BatchResult", "fuse_states", "map_traverse_files", "run_batch"]
+
+#: Names the fused map writes at the top of the batch's folder (glob patterns): an old
+#: file of these names that a run does not write again is dropped.
+FUSED_OUTPUTS = ("map.tif", "map_*.tif", "map_*.png", "batch.json")
+
+#: Prefix of a worker's temporary folder, followed by its process id.
+_BATCH_PREFIX = "rough_map_batch_"
 
 #: Name of the file that marks a traverse's folder (or the batch's) as complete.
 MARKER = "batch.json"
@@ -72,6 +88,8 @@ class BatchJob:
         Draw the layer PNGs.
     n_jobs : int
         Processes for the frames of this traverse.
+    allow_outside : tuple of str
+        Folders outside the traverse folder its files may be in (``--allow-outside``).
     """
 
     traverse: str
@@ -81,6 +99,7 @@ class BatchJob:
     near_far: str | bool
     png: bool
     n_jobs: int = 1
+    allow_outside: tuple[str, ...] = ()
 
 
 @dataclass
@@ -127,16 +146,17 @@ def map_traverse_files(job: BatchJob) -> dict[str, bytes]:
 
     The marker ``batch.json`` (the fingerprint and the traverse's figures) is among them.
     """
-    tmp = Path(tempfile.mkdtemp(prefix="rough_map_batch_"))
+    clean_dead_temp_dirs(_BATCH_PREFIX)
+    tmp = Path(tempfile.mkdtemp(prefix=f"{_BATCH_PREFIX}{os.getpid()}_"))
     try:
         result = analyse(
-            job.traverse,
+            load_traverse(job.traverse, allow_outside=job.allow_outside),
             _model_file(job.model),
             resolution=job.resolution,
             near_far=job.near_far,
             n_jobs=job.n_jobs,
         )
-        write_outputs(result, tmp, png=job.png)
+        write_outputs(result, tmp, png=job.png, as_set=False)
         if result.mapper is not None:
             result.mapper.close()  # its tiles on disk
         marker = {
@@ -155,33 +175,30 @@ def map_traverse_files(job: BatchJob) -> dict[str, bytes]:
 
 
 def _write_set(folder: Path, files: dict[str, bytes]) -> None:
-    """Write a traverse's files as a set: a hidden folder renamed into place when done."""
-    part = folder.with_name(f".{folder.name}.{uuid.uuid4().hex[:8]}.partial")
-    try:
+    """Write a traverse's files as a set: staged beside ``folder`` and swapped in whole
+    (:func:`rough_map._output_set.output_set`; the folder is all the batch's)."""
+    for rel in files:
+        if ".." in Path(rel).parts or Path(rel).is_absolute():
+            raise InputError(f"refusing to write {rel!r} outside {folder}")
+    with output_set(folder, owned=("*",)) as stage:
         for rel, data in files.items():
-            target = part / rel
-            if ".." in Path(rel).parts or Path(rel).is_absolute():
-                raise InputError(f"refusing to write {rel!r} outside {folder}")
+            target = stage / rel
             target.parent.mkdir(parents=True, exist_ok=True)
-            target.write_bytes(data)
-        old = None
-        if folder.exists():
-            old = folder.with_name(f".{folder.name}.{uuid.uuid4().hex[:8]}.old")
-            os.replace(folder, old)
-        os.replace(part, folder)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-    finally:
-        shutil.rmtree(part, ignore_errors=True)
+            with open(target, "wb") as fh:
+                fh.write(data)
+                fh.flush()
+                os.fsync(fh.fileno())
 
 
-def _clean_leftovers(out: Path) -> None:
-    """Remove what a killed run left: hidden ``.<name>.*.partial``/``.old`` folders and
-    ``.fused.*`` ones (one batch writes to a folder at a time)."""
-    for path in out.glob(".*"):
-        if path.is_dir() and (
-            path.name.endswith((".partial", ".old")) or path.name.startswith(".fused.")
-        ):
+def _clean_leftovers(out: Path, names: Sequence[str]) -> None:
+    """Repair and remove what a killed run left in ``out``: a traverse's folder set aside
+    is put back, staged folders and temporary files are removed (those older than this
+    run), and rough_map 0.x's ``.fused.*`` folders."""
+    for name in names:
+        recover(out / name)
+    clean_stale(out)
+    for path in out.glob(".fused.*"):
+        if path.is_dir():
             log.info("removing %s, left by an interrupted run", path.name)
             shutil.rmtree(path, ignore_errors=True)
 
@@ -228,6 +245,7 @@ def run_batch(
     scheduler: str | None = None,
     tls: tuple[str, str, str] | None = None,
     progress: bool = False,
+    allow_outside: Sequence[PathLike] = (),
 ) -> BatchResult:
     """Map each traverse into ``out_dir/<name>/`` and fuse them all into ``out_dir``.
 
@@ -256,15 +274,25 @@ def run_batch(
         dask's configuration (``distributed.comm.tls.*``).
     progress : bool
         Progress bar on stderr.
+    allow_outside : sequence of path
+        Folders outside the traverse folders whose files the traverses may name
+        (:func:`rough_map.io.traverse.load_traverse`); default none.
 
     Returns
     -------
     BatchResult
     """
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    recover(out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise write_error(out, exc) from None
     jobs = _jobs(traverses, model, resolution, near_far, png)
-    _clean_leftovers(out)
+    if allow_outside:
+        allowed = tuple(str(Path(p).resolve()) for p in allow_outside)
+        jobs = [replace(j, allow_outside=allowed) for j in jobs]
+    _clean_leftovers(out, [j.name for j in jobs])
     todo = [j for j in jobs if not _done(out / j.name, j)]
     skipped = [j.name for j in jobs if j not in todo]
     if skipped:
@@ -371,25 +399,19 @@ def _on_cluster(
 
 
 def _write_fused(fused: Any, out: Path, png: bool, names: list[str]) -> dict[str, Path]:
-    """The fused map's files at the top of ``out``, written in a temporary folder first and
-    moved in one by one; ``batch.json`` last."""
-    tmp = Path(tempfile.mkdtemp(prefix=".fused.", dir=out))
-    try:
-        written = export_map(fused, tmp, name="map", png=png)
-        outputs = {}
-        for key, path in written.items():
-            target = out / path.name
-            os.replace(path, target)
-            outputs[key] = target
-        marker = {
-            "traverses": names,
-            "map_shape": list(fused.shape),
-            "resolution_m": fused.resolution,
-            "rough_map_version": __version__,
-        }
-        with atomic_output(out / MARKER) as t:
+    """The fused map's files at the top of ``out``, with ``batch.json``: the whole folder
+    staged and swapped in as a set (:func:`rough_map._output_set.output_set`), the
+    traverses' folders (already in place) and the user's files carried over."""
+    marker = {
+        "traverses": names,
+        "map_shape": list(fused.shape),
+        "resolution_m": fused.resolution,
+        "rough_map_version": __version__,
+    }
+    with output_set(out, owned=FUSED_OUTPUTS) as stage:
+        written = export_map(fused, stage, name="map", png=png)
+        with atomic_output(stage / MARKER) as t:
             t.write_text(json.dumps(marker, indent=2, sort_keys=True) + "\n")
-        outputs["batch"] = out / MARKER
-        return outputs
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+    outputs = {key: out / path.name for key, path in written.items()}
+    outputs["batch"] = out / MARKER
+    return outputs

@@ -28,9 +28,17 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from rough_map._bounded import (
+    MAX_DOCUMENT_BYTES,
+    clip,
+    parse_document,
+    parse_json,
+    parse_yaml,
+    read_document_text,
+    short,
+)
 from rough_map.errors import FileFormatError, SchemaError
 from rough_map.geometry import CAMERA_AXES_IN_VEHICLE
 
@@ -43,6 +51,9 @@ __all__ = [
     "is_opencv_file",
     "opencv_values",
 ]
+
+#: Largest image side of a calibration, px (as rough_map.config.MAX_IMAGE_SIDE).
+_MAX_SIDE = 65_536
 
 #: Tolerance of "the identity" and "the same row" checks (dimensionless, px).
 _EPS = 1e-9
@@ -93,7 +104,9 @@ def check_rigid_transform(value: list[list[float]]) -> list[list[float]]:
     if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0]):
         raise ValueError("camera_to_vehicle last row must be [0, 0, 0, 1]")
     r = m[:3, :3]
-    if not np.allclose(r @ r.T, np.eye(3), atol=1e-5) or np.linalg.det(r) < 0:
+    with np.errstate(over="ignore", invalid="ignore"):  # huge entries: not a rotation
+        proper = np.allclose(r @ r.T, np.eye(3), atol=1e-5) and np.linalg.det(r) > 0
+    if not proper:
         raise ValueError("camera_to_vehicle rotation block is not a proper rotation")
     return value
 
@@ -118,7 +131,12 @@ def _rectified_pose(camera_to_vehicle: Any, path: Path, rotation: np.ndarray) ->
     if camera_to_vehicle is None:
         transform = default_camera_to_vehicle()
     else:
-        transform = np.asarray(camera_to_vehicle, dtype=float)
+        try:
+            transform = np.asarray(camera_to_vehicle, dtype=float)
+        except (TypeError, ValueError):
+            raise SchemaError(
+                path, "must be a 4x4 matrix of numbers", "camera_to_vehicle"
+            ) from None
         if transform.shape != (4, 4):
             raise SchemaError(
                 path, f"must be 4x4, got shape {transform.shape}", "camera_to_vehicle"
@@ -133,12 +151,7 @@ def _rectified_pose(camera_to_vehicle: Any, path: Path, rotation: np.ndarray) ->
 
 
 def _read_yaml(path: Path) -> dict[str, Any]:
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as err:
-        raise FileFormatError(path, f"cannot read: {err}") from err
-    except yaml.YAMLError as err:
-        raise FileFormatError(path, "invalid YAML: " + " ".join(str(err).split())) from err
+    data = parse_document(path, kind="yaml")
     if not isinstance(data, dict):
         raise SchemaError(path, f"expected a mapping at the top level, got {type(data).__name__}")
     return data
@@ -172,13 +185,15 @@ def _camera_info(path: Path) -> dict[str, Any]:
     model = str(data.get("distortion_model", "plumb_bob"))
     if model not in ("plumb_bob", "rational_polynomial", ""):
         raise SchemaError(
-            path, f"{model!r} is not supported (plumb_bob, rational_polynomial)", "distortion_model"
+            path,
+            f"{short(model)} is not supported (plumb_bob, rational_polynomial)",
+            "distortion_model",
         )
     size = []
     for key in ("image_width", "image_height"):
         value = data.get(key)
         if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
-            raise SchemaError(path, f"must be a positive integer (px), got {value!r}", key)
+            raise SchemaError(path, f"must be a positive integer (px), got {short(value)}", key)
         size.append(value)
     return {
         "size": tuple(size),
@@ -302,7 +317,8 @@ def is_opencv_file(path: str | Path) -> bool:
     if path.suffix.lower() == ".xml":
         return True
     try:
-        head = path.read_text(encoding="utf-8", errors="replace")[:4096]
+        with path.open("rb") as stream:
+            head = stream.read(4096).decode("utf-8", errors="replace")
     except OSError:
         return False
     return (
@@ -344,6 +360,75 @@ def _node(
     return array
 
 
+class _DocNode:
+    """A value of a parsed FileStorage document with the few ``cv2.FileNode`` methods the
+    reader uses."""
+
+    def __init__(self, value: Any) -> None:
+        self.value = value
+
+    def empty(self) -> bool:
+        return self.value is None
+
+    def isMap(self) -> bool:  # OpenCV's method names
+        return isinstance(self.value, dict)
+
+    def isSeq(self) -> bool:
+        return isinstance(self.value, list)
+
+    def size(self) -> int:
+        return len(self.value)
+
+    def at(self, i: int) -> _DocNode:
+        return _DocNode(self.value[i])
+
+    def real(self) -> float:
+        if isinstance(self.value, bool) or not isinstance(self.value, int | float):
+            raise ValueError(f"expected a number, got {short(self.value, 30)}")
+        return float(self.value)
+
+    def mat(self) -> np.ndarray | None:
+        data = self.value.get("data")
+        if not isinstance(data, list):
+            return None
+        return np.asarray(data, dtype=float)  # ValueError for anything but numbers
+
+
+class _DocStorage:
+    """A parsed FileStorage document with the ``cv2.FileStorage`` methods the reader uses."""
+
+    def __init__(self, data: dict[str, Any]) -> None:
+        self.data = data
+
+    def isOpened(self) -> bool:
+        return True
+
+    def getNode(self, key: str) -> _DocNode:
+        return _DocNode(self.data.get(key))
+
+    def release(self) -> None:
+        pass
+
+
+def _opencv_document(path: Path) -> dict[str, Any]:
+    """An OpenCV FileStorage YAML or JSON file as a mapping (bounded parsing)."""
+    text = read_document_text(path)
+    if text.lstrip().startswith("{"):
+        data = parse_json(text, path)
+    else:
+        data = parse_yaml(text, path, opencv=True)
+    if not isinstance(data, dict):
+        raise SchemaError(path, f"expected a mapping at the top level, got {type(data).__name__}")
+    return data
+
+
+def _cv_message(err: BaseException) -> str:
+    """The last line of an OpenCV error, short (its first lines name OpenCV's sources)."""
+    cause = err.__cause__ or err.__context__ if isinstance(err, SystemError) else None
+    text = " ".join(str(cause or err).split())
+    return clip(text.rsplit("error: ", 1)[-1], 100)
+
+
 def _required(fs: Any, path: Path, key: str, shape: tuple[int, ...] | None) -> np.ndarray:
     array = _node(fs, path, key, shape)
     assert array is not None  # required: _node raised
@@ -363,8 +448,8 @@ def _image_size(fs: Any, path: Path) -> tuple[int, int]:
                 path, "missing: give image_width and image_height (px)", "image_width"
             )
         size = (int(both[0]), int(both[1]))
-    if min(size) <= 0:
-        raise SchemaError(path, f"must be positive, got {size}", "image_width")
+    if min(size) <= 0 or max(size) > _MAX_SIDE:
+        raise SchemaError(path, f"must be in 1..{_MAX_SIDE} px, got {short(size)}", "image_width")
     return size
 
 
@@ -389,14 +474,24 @@ def opencv_values(path: str | Path, camera_to_vehicle: Any = None) -> dict[str, 
     import cv2  # heavy: only for OpenCV files
 
     path = Path(path)
-    if not path.is_file():
-        raise FileFormatError(path, "cannot read: no such file")
     try:
-        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error as err:
-        raise FileFormatError(
-            path, "not an OpenCV FileStorage file: " + " ".join(str(err).split())[:200]
-        ) from None
+        size_bytes = path.stat().st_size if path.is_file() else -1
+    except OSError:
+        size_bytes = -1
+    if size_bytes < 0:
+        raise FileFormatError(path, "cannot read: no such file")
+    if size_bytes > MAX_DOCUMENT_BYTES:
+        raise FileFormatError(path, f"larger than {MAX_DOCUMENT_BYTES // 2**20} MB")
+    fs: Any
+    if path.suffix.lower() == ".xml":
+        try:
+            fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        except (cv2.error, SystemError) as err:
+            raise FileFormatError(
+                path, "not an OpenCV FileStorage file: " + _cv_message(err)
+            ) from None
+    else:  # YAML or JSON: read by rough_map's bounded parsers (OpenCV's can abort)
+        fs = _DocStorage(_opencv_document(path))
     try:
         if not fs.isOpened():
             raise FileFormatError(path, "not an OpenCV FileStorage file")
@@ -409,6 +504,10 @@ def opencv_values(path: str | Path, camera_to_vehicle: Any = None) -> dict[str, 
             _node(fs, path, k, s, False)
             for k, s in (("R1", (3, 3)), ("R2", (3, 3)), ("P1", (3, 4)), ("P2", (3, 4)))
         ]
+    except (cv2.error, SystemError, OverflowError, ValueError, TypeError) as err:
+        if isinstance(err, FileFormatError):
+            raise
+        raise FileFormatError(path, "malformed OpenCV FileStorage: " + _cv_message(err)) from None
     finally:
         fs.release()
     for key, d in (("D1", d1), ("D2", d2)):
@@ -430,7 +529,7 @@ def opencv_values(path: str | Path, camera_to_vehicle: Any = None) -> dict[str, 
             raise SchemaError(path, f"cv2.stereoRectify failed: {message}", "R") from None
     else:
         r1, r2, p1, p2 = stored
-    if abs(p2[1, 3]) > 1e-6 * abs(p2[0, 0]) or not p2[0, 3] < 0:
+    if not p2[0, 0] > 0 or abs(p2[1, 3]) > 1e-6 * abs(p2[0, 0]) or not p2[0, 3] < 0:
         raise SchemaError(
             path,
             "not a side-by-side rig with the right camera on the right "

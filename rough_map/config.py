@@ -41,6 +41,7 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
+from rough_map._bounded import short
 from rough_map._files import atomic_output
 from rough_map.calibration_files import (
     Rectification,
@@ -49,11 +50,16 @@ from rough_map.calibration_files import (
     check_rigid_transform,
     opencv_values,
 )
-from rough_map.errors import FileFormatError, InputError, SchemaError
+from rough_map.config_files import format_location, load_model, schema_error
+from rough_map.config_files import load_mapping as load_mapping
+from rough_map.errors import InputError
 from rough_map.geometry import CAMERA_AXES_IN_VEHICLE, pose_matrix, rotation_matrix
 
 SCHEMA_VERSION = "1.0"
 """Version of the traverse format written by this release."""
+
+MAX_IMAGE_SIDE = 65_536
+"""Largest image width or height of a calibration, px."""
 
 _JSON_SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
 
@@ -63,8 +69,10 @@ class _Model(BaseModel):
 
 
 def _relative_path(value: str) -> str:
+    if "\x00" in value:
+        raise ValueError(f"{short(value)} holds a NUL character")
     if PurePosixPath(value).is_absolute() or PureWindowsPath(value).is_absolute():
-        raise ValueError(f"{value!r} must be a path relative to the traverse folder")
+        raise ValueError(f"{short(value)} must be a path relative to the traverse folder")
     return value
 
 
@@ -218,8 +226,8 @@ class StereoCalibration(_Model):
     fy: float = Field(gt=0, description="Focal length along y, px.")
     cx: float = Field(description="Principal point column, px (pixel centres at integers).")
     cy: float = Field(description="Principal point row, px.")
-    width: int = Field(gt=0, description="Image width, px.")
-    height: int = Field(gt=0, description="Image height, px.")
+    width: int = Field(gt=0, le=MAX_IMAGE_SIDE, description="Image width, px.")
+    height: int = Field(gt=0, le=MAX_IMAGE_SIDE, description="Image height, px.")
     baseline: float = Field(gt=0, description="Distance between the optical centres, m.")
     camera_to_vehicle: list[list[float]] = Field(
         description="4x4 transform, row-major: left-camera coordinates (m) -> vehicle (m)."
@@ -423,107 +431,7 @@ SCHEMAS: dict[str, type[BaseModel]] = {"traverse": TraverseSpec}
 # Loading
 
 
-def load_mapping(path: str | Path) -> dict[str, Any]:
-    """Read a JSON or YAML file whose top level is a mapping.
-
-    YAML is read with ``yaml.safe_load``: tags that would build Python objects are refused.
-
-    Parameters
-    ----------
-    path : str or Path
-        A ``.json``, ``.yaml`` or ``.yml`` file.
-
-    Returns
-    -------
-    dict
-        The parsed mapping.
-
-    Raises
-    ------
-    FileFormatError
-        Missing or unreadable file, unknown suffix, or a JSON/YAML syntax error (with its
-        line and column).
-    SchemaError
-        The top level is not a mapping.
-    """
-    path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix not in (".json", ".yaml", ".yml"):
-        raise FileFormatError(path, f"expected .json, .yaml or .yml, got {suffix!r}", "suffix")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as err:
-        raise FileFormatError(path, f"cannot read: {err}") from err
-    try:
-        data = json.loads(text) if suffix == ".json" else yaml.safe_load(text)
-    except json.JSONDecodeError as err:
-        raise FileFormatError(
-            path, f"invalid JSON at line {err.lineno}, column {err.colno}: {err.msg}"
-        ) from err
-    except yaml.YAMLError as err:
-        raise FileFormatError(path, "invalid YAML: " + " ".join(str(err).split())) from err
-    if not isinstance(data, dict):
-        raise SchemaError(path, f"expected a mapping at the top level, got {type(data).__name__}")
-    return data
-
-
-def format_location(loc: tuple[int | str, ...] | list[int | str]) -> str:
-    """``("frames", 3, "pose", "yaw")`` -> ``"frames[3].pose.yaw"``."""
-    out = ""
-    for part in loc:
-        out += f"[{part}]" if isinstance(part, int) else f".{part}" if out else str(part)
-    return out or "(top level)"
-
-
-def schema_error(path: str | Path, err: ValidationError, max_shown: int = 3) -> SchemaError:
-    """Turn a pydantic ValidationError into a one-line :class:`SchemaError`.
-
-    The message reads ``<path>: frames[3].pose.x: Field required; ...``: the location of each
-    problem in the file, then pydantic's explanation. ``SchemaError.field`` is the location
-    of the first problem.
-
-    Parameters
-    ----------
-    path : str or Path
-        The file that was validated.
-    err : pydantic.ValidationError
-        The validation error.
-    max_shown : int
-        How many problems to spell out; the rest are counted.
-    """
-    problems: list[tuple[str, str]] = []
-    for item in err.errors(include_url=False):
-        loc = list(item["loc"])
-        ctx = item.get("ctx") or {}
-        if item["type"] == "time_order":
-            loc += [ctx["frame_index"], "t"]
-        message = item["msg"].removeprefix("Value error, ")
-        if item["type"] == "extra_forbidden":
-            message = "unknown field (a typo?)"
-        problems.append((format_location(loc), message))
-    text = "; ".join(f"{where}: {what}" for where, what in problems[:max_shown])
-    if len(problems) > max_shown:
-        text += f" (and {len(problems) - max_shown} more problems)"
-    error = SchemaError(path, text)
-    error.field = problems[0][0] if problems else None
-    return error
-
-
-def load_model(path: str | Path, model: type[BaseModel]) -> Any:
-    """Load a JSON/YAML file and validate it against ``model``.
-
-    Raises
-    ------
-    FileFormatError
-        The file cannot be read or parsed (see :func:`load_mapping`).
-    SchemaError
-        The content does not follow the model; the message names the field.
-    """
-    data = load_mapping(path)
-    try:
-        return model.model_validate(data)
-    except ValidationError as err:
-        raise schema_error(path, err) from err
+# The loaders live in rough_map.config_files (re-exported here).
 
 
 # --------------------------------------------------------------------------------------------

@@ -38,8 +38,14 @@ class FileFormatError(RoughMapError, ValueError):
     def __init__(self, path: str | Path, message: str, field: str | None = None) -> None:
         self.path = Path(path)
         self.field = field
+        self._parts = (str(path), message, field)
         where = f"{path}" + (f" [{field}]" if field else "")
         super().__init__(f"{where}: {message}")
+
+    def __reduce__(self) -> tuple:
+        # Rebuilt from its parts, so that an error raised in a worker process (joblib,
+        # multiprocessing) reaches the parent as itself, not as an unpickling failure.
+        return (type(self), self._parts, self.__dict__)
 
 
 class SchemaError(FileFormatError):

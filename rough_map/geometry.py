@@ -93,12 +93,13 @@ def transform_columns(
     x, y, z = np.ascontiguousarray(q.T)  # strided columns are slow to combine
     t = np.zeros(3) if offset is None else np.asarray(offset, dtype=float)
     out = []
-    for i in range(3):
-        row = x * rot[i, 0]
-        row += y * rot[i, 1]
-        row += z * rot[i, 2]
-        row += t[i]
-        out.append(row)
+    with np.errstate(over="ignore", under="ignore", invalid="ignore"):  # absurd -> inf, NaN
+        for i in range(3):
+            row = x * rot[i, 0]
+            row += y * rot[i, 1]
+            row += z * rot[i, 2]
+            row += t[i]
+            out.append(row)
     return out[0], out[1], out[2]
 
 
@@ -220,9 +221,13 @@ def ground_to_pixel(
 
 def check_angle(name: str, value: float) -> float:
     """``value`` as a float, or :class:`InputError` unless it is an angle within +-pi/2 rad."""
-    value = float(value)
+    raw = value
+    try:
+        value = float(value) if not isinstance(value, str | bytes) else math.nan
+    except (TypeError, ValueError):
+        value = math.nan
     if not math.isfinite(value) or abs(value) > math.pi / 2:
-        raise InputError(f"{name} must be an angle in rad within +-pi/2, got {value!r}")
+        raise InputError(f"{name} must be an angle in rad within +-pi/2, got {raw!r:.40}")
     return value
 
 
@@ -256,7 +261,10 @@ def compensate_tilt(points: np.ndarray, roll: float, pitch: float) -> np.ndarray
         ``R_v^w @ p`` for every point.
     """
     rot = rotation_matrix(check_angle("roll", roll), check_angle("pitch", pitch))
-    pts = np.asarray(points, dtype=float)
+    try:
+        pts = np.asarray(points, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError("points must be a numeric N x 3 array of x, y, z in m") from None
     if pts.ndim != 2 or pts.shape[1] != 3 or pts.shape[0] == 0:
         raise InputError(f"points must have shape (N, 3) (x, y, z in m), got {pts.shape}")
     return np.column_stack(transform_columns(pts, rot))

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from rough_map._files import PathLike
+from rough_map._output_set import output_set
 from rough_map.classify import (
     RoughnessLevels,
     TerrainModel,
@@ -51,10 +52,26 @@ from rough_map.patch import Extraction
 
 log = logging.getLogger(__name__)
 
+#: Names ``rough-map map`` writes in its folder (glob patterns): an old file of these
+#: names that a run does not write again is dropped from the folder (see
+#: :func:`write_outputs`); any other file there is the user's and is kept.
+MAP_OUTPUTS = (
+    "map.tif",
+    "map_*.tif",
+    "map_*.png",
+    "map_gridmap",
+    "features.csv",
+    "features.csv.json",
+    "labels.csv",
+    "labels.csv.json",
+    "map_state.npz",
+)
+
 #: What the map's roughness layers fuse (:func:`analyse`'s ``roughness``).
 ROUGHNESS_SOURCES = ("raw", "smoothed")
 
 __all__ = [
+    "MAP_OUTPUTS",
     "ROUGHNESS_SOURCES",
     "TraverseAnalysis",
     "analyse",
@@ -368,6 +385,7 @@ def write_outputs(
     gridmap_bag: bool = False,
     state: bool = True,
     progress: bool = False,
+    as_set: bool = True,
 ) -> dict[str, Path]:
     """Everything ``rough-map map`` writes for a traverse, into ``out_dir``.
 
@@ -376,13 +394,39 @@ def write_outputs(
     ``map_state.npz``: the map's sums, which ``rough-map batch`` adds to other traverses'
     (:meth:`rough_map.map.tiles.TiledMap.add_saved`).
 
+    With ``as_set`` (the default) they are written as a set
+    (:func:`rough_map._output_set.output_set`): in a staging folder beside ``out_dir``
+    swapped in whole when all are written, so that ``out_dir`` holds either the old outputs
+    or the new ones, never a mix; the user's own files in ``out_dir`` are kept, outputs of
+    an earlier run that this one does not write (:data:`MAP_OUTPUTS`) are dropped.
+
     Returns
     -------
     dict of str to Path
-        What was written, by kind.
+        What was written, by kind (paths in ``out_dir``).
+
+    Raises
+    ------
+    FileFormatError
+        Writing failed (full disk, read-only folder); ``out_dir`` is as it was.
     """
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    if not as_set:
+        out.mkdir(parents=True, exist_ok=True)
+        return _write_outputs(result, out, png, gridmap_bag, state, progress)
+    with output_set(out, owned=MAP_OUTPUTS) as stage:
+        written = _write_outputs(result, stage, png, gridmap_bag, state, progress)
+    return {k: out / p.relative_to(stage) for k, p in written.items()}
+
+
+def _write_outputs(
+    result: TraverseAnalysis,
+    out: Path,
+    png: bool,
+    gridmap_bag: bool,
+    state: bool,
+    progress: bool,
+) -> dict[str, Path]:
     grid = result.map
     written = export_map(grid, out, name="map", png=False, gridmap_bag=gridmap_bag)
     if png:

@@ -372,7 +372,7 @@ def test_features_csv_without_its_metadata(small_features, tmp_path: Path, capsy
     with pytest.raises(FileFormatError, match="format_version 99; this rough_map reads up to 1"):
         read_features(path)
     sidecar.write_text("{not json")
-    with pytest.raises(FileFormatError, match="metadata is not JSON"):
+    with pytest.raises(FileFormatError, match="invalid JSON at line 1"):
         read_features(path)
 
 
@@ -455,6 +455,7 @@ def test_stereo_without_pairs_or_calibration(small: Path, tmp_path: Path) -> Non
     doc["calibration"] = StereoCalibration.xb3_default().model_dump()
     (tmp_path / "traverse.json").write_text(json.dumps(doc))
     (tmp_path / "clouds").symlink_to(small / "clouds")
-    feats = traverse_features(tmp_path, source="stereo")  # no frame has a pair: none stops
+    linked = load_traverse(tmp_path, allow_outside=[small])  # clouds/ links there
+    feats = traverse_features(linked, source="stereo")  # no frame has a pair: none stops
     assert not feats.valid.any() and set(feats["reason"]) == {"no stereo pair"}
-    assert traverse_features(tmp_path, source="auto").valid.all()  # auto: the clouds
+    assert traverse_features(linked, source="auto").valid.all()  # auto: the clouds

@@ -7,6 +7,8 @@ checked by hand with ``--tables``.
 
 from __future__ import annotations
 
+import importlib
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -43,3 +45,24 @@ def test_readme_transcripts_match_their_commands(tmp_path: Path) -> None:
         timeout=1200,
     )
     assert proc.returncode == 0, proc.stderr[-4000:]
+
+
+def _limit_value(text: str) -> int:
+    """``65,536 B`` -> 65536, ``4 GiB`` -> 4 * 2**30, ``100,000,000 px`` -> 100000000."""
+    match = re.fullmatch(r"([\d,]+)\s*(KiB|MiB|GiB|B|px)?", text.strip())
+    assert match, f"not a limit: {text!r}"
+    scale = {"KiB": 2**10, "MiB": 2**20, "GiB": 2**30}.get(match.group(2) or "", 1)
+    return int(match.group(1).replace(",", "")) * scale
+
+
+def test_limits_table_shows_the_values_in_the_code() -> None:
+    """Each row of the README's limits table names the constant it shows; they agree."""
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    section = text.split("## Limits", 1)[1].split("\n## ", 1)[0]
+    rows = [r for r in section.splitlines() if r.startswith("| ") and "`rough_map." in r]
+    assert len(rows) >= 15
+    for row in rows:
+        _, _what, shown, where, _ = row.split("|")
+        module, _, name = where.strip().strip("`").rpartition(".")
+        value = getattr(importlib.import_module(module), name)
+        assert _limit_value(shown) == value, f"{where.strip()} is {value}, README shows {shown}"

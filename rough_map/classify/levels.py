@@ -51,7 +51,7 @@ class RoughnessLevels(BaseModel):
         class boundaries written ``"C/D"`` (geometric midpoint of the two classes' centres).
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     levels: tuple[str, ...] = Field(("low", "medium", "high"), min_length=2)
     thresholds: tuple[float | str, ...] = ("C/D", "E/F")

@@ -46,7 +46,7 @@ from rough_map.classify.training import (
     training_hash,
     traverse_folds,
 )
-from rough_map.classify.validation import check_fitted
+from rough_map.classify.validation import check_fitted, model_failures
 from rough_map.patch import Extraction
 
 log = logging.getLogger(__name__)
@@ -491,18 +491,20 @@ class TerrainModel(BaseEstimator):
         if valid.any():
             cols = np.searchsorted(self.classes_, self.classifier_.classes_)
             raw[valid] = 0.0
-            raw[np.ix_(valid, cols)] = self.classifier_.predict_proba(X[valid])
+            with model_failures(self, "classifier"):
+                raw[np.ix_(valid, cols)] = self.classifier_.predict_proba(X[valid])
         return raw, valid
 
     def _check_omega(self, table: Any) -> None:
         """Raise ModelError unless the table's wavenumbers are the model's."""
         omega = np.asarray(table.omega, dtype=float)
         if omega.shape != self.omega_.shape or not np.allclose(omega, self.omega_, rtol=1e-6):
+            patch = {k: self.extraction_.get(k) for k in ("size", "spacing")}
             raise errors.ModelError(
-                f"traverse {table.name!r}: its spectrum has {omega.size} wavenumbers from "
+                f"traverse {table.name!r:.40}: its spectrum has {omega.size} wavenumbers from "
                 f"{omega[0] if omega.size else float('nan'):.3g} rad/m, the model expects "
                 f"{self.omega_.size} from {self.omega_[0]:.3g} rad/m; compute the features "
-                f"with the model's patch {self.extraction_}"
+                f"with the model's patch (m): {patch}"
             )
 
     def _filter(
@@ -519,11 +521,12 @@ class TerrainModel(BaseEstimator):
         flt = copy.copy(self.filter_)
         flt.set_params(mode=mode)
         ll = emission_log_likelihood(raw, frame_steps(distance), self.evidence_per_m_)
-        filtered = flt.predict_proba(ll, distance=distance, valid=evidence)
-        if mode == "viterbi":
-            filtered_class = flt.predict(ll, distance=distance, valid=evidence).astype(object)
-        else:
-            filtered_class = self.classes_[np.argmax(filtered, axis=1)].astype(object)
+        with model_failures(self, "path filter"):
+            filtered = flt.predict_proba(ll, distance=distance, valid=evidence)
+            if mode == "viterbi":
+                filtered_class = flt.predict(ll, distance=distance, valid=evidence).astype(object)
+            else:
+                filtered_class = self.classes_[np.argmax(filtered, axis=1)].astype(object)
         return filtered, filtered_class
 
     def _defects(
@@ -537,7 +540,8 @@ class TerrainModel(BaseEstimator):
             log.warning("%s: poses not all finite; isolated defects not looked for", table.name)
             return none
         R = np.where(valid, np.asarray(table.columns["R"], dtype=float), np.nan)
-        defect = np.asarray(self.defects(R, distance), dtype=bool)
+        with model_failures(self, "defect detector"):
+            defect = np.asarray(self.defects(R, distance), dtype=bool)
         if defect.any():
             log.info(
                 "%s: %d frame(s) see an isolated defect (%r); the filter does not take their class",

@@ -13,13 +13,26 @@ its own defaults (numpy, builtins, most of scikit-learn) plus the explicit list
 and so is a file whose sha256 differs from the one its card records (altered after it
 was written), a file that is not a skops zip, and one that holds anything but a
 ``TerrainModel`` of the current :data:`~rough_map.classify.MODEL_FORMAT`.
+
+Before skops parses a file, its zip is bounded (:mod:`rough_map.classify._archive`: members,
+sizes, compression ratio, ``schema.json`` size and nesting, array headers); after, the
+rebuilt model's structure is checked and it must pass a trial prediction
+(:mod:`rough_map.classify._checks`). Every failure is a one-line :class:`ModelError` naming
+the file.
+
+A model and its card are written as one commit (:mod:`rough_map.classify._commit`): both
+into ``.NAME.pending/``, then a ``complete`` marker, then renamed into place. A save killed
+at any moment leaves the old pair, the new pair, or a pending folder that the next save,
+load or card read of NAME resolves (rolled forward if complete, else discarded).
 """
 
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import logging
+import os
 import platform
 import zipfile
 from datetime import UTC, datetime
@@ -27,7 +40,9 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from rough_map._files import atomic_output
+from rough_map.classify._archive import MAX_DEPTH, MAX_FILE, brief, check_archive, json_depth
+from rough_map.classify._checks import check_loaded_model
+from rough_map.classify._commit import commit_pair, resolve_pending
 from rough_map.classify.model import MODEL_FORMAT, TerrainModel
 from rough_map.classify.spectral import FEATURE_DOC, INPUT_SCALARS
 from rough_map.config import jsonable
@@ -51,6 +66,8 @@ __all__ = [
 MODEL_SUFFIX = ".skops"
 CARD_SUFFIX = ".card.json"
 CARD_FORMAT = "rough_map model card 1"
+MAX_CARD = 16 * 2**20
+"""Largest model card read, bytes."""
 
 #: Types that skops does not trust by default and that a rough_map model file may hold,
 #: named by the module that defines them (a file records that path). Anything else in a
@@ -65,6 +82,7 @@ TRUSTED_TYPES: tuple[str, ...] = (
     "sklearn.calibration._TemperatureScaling",
     "sklearn.ensemble._hist_gradient_boosting.predictor.TreePredictor",
     "sklearn.model_selection._split.PredefinedSplit",
+    "sklearn.tree._tree.Tree",  # node arrays checked before use (classify._checks)
 )
 
 #: Libraries whose versions a card records.
@@ -84,8 +102,12 @@ def model_paths(name: str | Path) -> tuple[Path, Path]:
     (Path, Path)
         ``models/NAME.skops`` and ``models/NAME.card.json``.
     """
+    if not isinstance(name, str | os.PathLike) or "\0" in os.fspath(name):
+        raise ModelError(f"a model name must be a path (str or Path); got {name!r:.60}")
     path = Path(name)
     text = path.name
+    if text in ("", ".", "..") or text in (CARD_SUFFIX, MODEL_SUFFIX):
+        raise ModelError(f"{str(name)!r:.80}: not a model name (models/NAME)")
     for suffix in (CARD_SUFFIX, MODEL_SUFFIX):
         if text.endswith(suffix):
             text = text[: -len(suffix)]
@@ -97,9 +119,12 @@ def model_paths(name: str | Path) -> tuple[Path, Path]:
 def sha256_file(path: str | Path) -> str:
     """Hex sha256 of a file's bytes."""
     digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
+    try:
+        with open(path, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                digest.update(block)
+    except (OSError, ValueError, TypeError) as err:
+        raise ModelError(f"{str(path)!r:.80}: cannot read ({brief(err)})") from None
     return digest.hexdigest()
 
 
@@ -228,12 +253,23 @@ def save_terrain_model(
     if not isinstance(model, TerrainModel) or not hasattr(model, "classifier_"):
         raise ModelError(f"only a fitted TerrainModel can be saved; got {type(model).__name__}")
     model_file, card_file = model_paths(name)
-    model_file.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_output(model_file) as tmp:
-        sio.dump(model, tmp, compression=zipfile.ZIP_DEFLATED, compresslevel=9)
-    card = build_card(model, model_file, card_extra)
-    with atomic_output(card_file) as tmp:
-        tmp.write_text(json.dumps(card, indent=2) + "\n", encoding="utf-8")
+    try:
+        model_file.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ModelError(f"{model_file.parent}: cannot create the folder ({brief(err)})") from err
+    card: dict[str, Any] = {}
+
+    def write_model(path: Path) -> None:
+        sio.dump(model, path, compression=zipfile.ZIP_DEFLATED, compresslevel=9)
+
+    def write_card(path: Path) -> None:
+        card.update(build_card(model, path.with_name(model_file.name), card_extra))
+        path.write_text(json.dumps(card, indent=2) + "\n", encoding="utf-8")
+
+    try:
+        commit_pair(model_file, card_file, write_model, write_card)
+    except OSError as err:
+        raise ModelError(f"{model_file}: cannot write the model ({brief(err)})") from err
     log.info("wrote %s (%d bytes) and %s", model_file, card["size_bytes"], card_file)
     return model_file, card_file
 
@@ -251,15 +287,25 @@ def read_card(name: str | Path) -> dict[str, Any]:
     ModelError
         Missing or unreadable card.
     """
-    _, card_file = model_paths(name)
+    model_file, card_file = model_paths(name)
+    resolve_pending(model_file, card_file)
     try:
-        card = json.loads(card_file.read_text(encoding="utf-8"))
+        if card_file.stat().st_size > MAX_CARD:
+            raise ModelError(f"{card_file}: model card larger than {MAX_CARD} bytes")
+        text = card_file.read_bytes()
+        if json_depth(text) > MAX_DEPTH:
+            raise ModelError(f"{card_file}: model card nested deeper than {MAX_DEPTH}")
+        card = json.loads(text.decode("utf-8"))
     except FileNotFoundError:
         raise ModelError(f"{card_file}: no model card") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise ModelError(f"{card_file}: unreadable model card: {err}") from err
+    except ModelError:
+        raise
+    except Exception as err:  # OSError, UnicodeDecodeError, JSONDecodeError, ...
+        raise ModelError(f"{card_file}: unreadable model card ({brief(err)})") from None
     if not isinstance(card, dict) or card.get("format") != CARD_FORMAT:
         raise ModelError(f"{card_file}: not a rough_map model card")
+    if not isinstance(card.get("sha256"), str):
+        raise ModelError(f"{card_file}: the model card has no sha256 string")
     return card
 
 
@@ -299,14 +345,23 @@ def load_terrain_model(name: str | Path, *, verify: bool = True) -> Any:
         differs from the card's; an object other than a TerrainModel of this format.
     """
     import skops.io as sio
+    from skops.io.exceptions import UntrustedTypesFoundException
 
     model_file, card_file = _resolve(name)
-    digest = sha256_file(model_file)
+    resolve_pending(model_file, card_file)
+    try:
+        size = model_file.stat().st_size
+        if size > MAX_FILE:
+            raise ModelError(f"{model_file}: {size} bytes; a model file has at most {MAX_FILE}")
+        data = model_file.read_bytes()
+    except OSError as err:
+        raise ModelError(f"{model_file}: cannot read the model ({brief(err)})") from err
+    digest = hashlib.sha256(data).hexdigest()
     if card_file.is_file():
-        expected = read_card(card_file).get("sha256")
+        expected = read_card(card_file)["sha256"]
         if expected != digest:
             raise ModelError(
-                f"{model_file}: sha256 {digest[:16]}... differs from the {expected!s:.16}... "
+                f"{model_file}: sha256 {digest[:16]}... differs from the {expected!r:.18}... "
                 f"in {card_file.name}: the file was altered or replaced after it was written; "
                 "refusing to load it"
             )
@@ -317,32 +372,35 @@ def load_terrain_model(name: str | Path, *, verify: bool = True) -> Any:
         )
     else:
         log.warning("%s: no model card; the file's integrity is not checked", model_file)
+    check_archive(data, model_file)
     try:
-        untrusted = sio.get_untrusted_types(file=model_file)
-    except (zipfile.BadZipFile, KeyError, ValueError, TypeError, OSError) as err:
-        raise ModelError(
-            f"{model_file}: not a skops model file ({type(err).__name__}: {err})"
-        ) from err
+        untrusted = sio.get_untrusted_types(data=data)
+    except Exception as err:  # whatever skops raises on a malformed schema
+        raise ModelError(f"{model_file}: not a skops model file ({brief(err)})") from None
     refused = sorted(set(untrusted) - set(TRUSTED_TYPES))
     if refused:
+        names = ", ".join(repr(t)[:60] for t in refused[:3]) + (", ..." if len(refused) > 3 else "")
         raise ModelError(
-            f"{model_file}: refusing to load types rough_map does not trust: {refused}; the "
+            f"{model_file}: refusing to load types rough_map does not trust: {names}; the "
             "file was not written by this version of rough_map, or it was altered"
         )
     try:
-        model = sio.load(model_file, trusted=list(TRUSTED_TYPES))
-    except (zipfile.BadZipFile, KeyError, ValueError, TypeError, AttributeError) as err:
+        model = sio.load(io.BytesIO(data), trusted=list(TRUSTED_TYPES))
+    except UntrustedTypesFoundException as err:
         raise ModelError(
-            f"{model_file}: cannot load the model ({type(err).__name__}: {err})"
-        ) from err
+            f"{model_file}: refusing to load types rough_map does not trust ({brief(err, 120)})"
+        ) from None
+    except Exception as err:  # BadZipFile, zlib.error, TokenError, ...
+        raise ModelError(f"{model_file}: cannot load the model ({brief(err)})") from None
     if not isinstance(model, TerrainModel):
         raise ModelError(
-            f"{model_file}: holds a {type(model).__module__}.{type(model).__name__}, not a "
-            "rough_map TerrainModel"
+            f"{model_file}: holds a {type(model).__module__:.40}.{type(model).__name__:.40}, "
+            "not a rough_map TerrainModel"
         )
     if getattr(model, "format_", None) != MODEL_FORMAT:
         raise ModelError(
-            f"{model_file}: model format {getattr(model, 'format_', None)!r}; this version of "
-            f"rough_map reads {MODEL_FORMAT!r}; retrain it with `rough-map train`"
+            f"{model_file}: model format {getattr(model, 'format_', None)!r:.40}; this version "
+            f"of rough_map reads {MODEL_FORMAT!r}; retrain it with `rough-map train`"
         )
+    check_loaded_model(model, model_file)
     return model

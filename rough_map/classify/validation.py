@@ -8,6 +8,8 @@ helpers here raise errors that are both, so that callers of either library catch
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 from numbers import Real
 from typing import Any
 
@@ -18,7 +20,14 @@ from sklearn.utils.validation import check_is_fitted, validate_data
 
 from rough_map import errors
 
-__all__ = ["NotFittedError", "check_fitted", "is_number", "validate_frames", "validate_labelled"]
+__all__ = [
+    "NotFittedError",
+    "check_fitted",
+    "is_number",
+    "model_failures",
+    "validate_frames",
+    "validate_labelled",
+]
 
 
 class NotFittedError(errors.NotFittedError, _SklearnNotFittedError):
@@ -94,3 +103,28 @@ def _validate(estimator: Any, X: ArrayLike, y: Any, reset: bool) -> Any:
 def is_number(value: Any) -> bool:
     """True for a finite real number that is not a bool."""
     return isinstance(value, Real) and not isinstance(value, bool) and math.isfinite(value)
+
+
+@contextmanager
+def model_failures(model: Any, part: str) -> Iterator[None]:
+    """Turn an unexpected failure of a model's component into a one-line ModelError."""
+    try:
+        yield
+    except errors.RoughMapError:
+        raise
+    except (
+        ValueError,
+        IndexError,
+        AttributeError,
+        TypeError,
+        KeyError,
+        ArithmeticError,
+        RuntimeError,
+        MemoryError,
+    ) as err:
+        text = repr(str(err))
+        text = text if len(text) <= 80 else text[:77] + "..."
+        raise errors.ModelError(
+            f"the model's {part} ({model.kind!r:.20}) failed: {type(err).__name__}: {text}; "
+            "the model file is malformed or was written by another version"
+        ) from err

@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -70,7 +71,7 @@ class Parser(argparse.ArgumentParser):
         super().__init__(*args, **kwargs)
 
     def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: error: {message}\n")
+        self.exit(2, error_line(self.prog, message) + "\n")
 
 
 def add_verbosity_args(parser: argparse.ArgumentParser, *, suppress: bool = False) -> None:
@@ -99,6 +100,40 @@ class CommandParser(Parser):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         add_verbosity_args(self, suppress=True)
+
+
+#: Longest error message the CLI prints after ``rough-map CMD: error: ``; a longer one is
+#: shortened in the middle, keeping its start (the file name) and its end.
+MAX_ERROR_MESSAGE = 200
+
+
+def printable(text: str) -> str:
+    """``text`` on one line: line breaks become one space, other characters that are not
+    printable (control bytes, surrogates of undecodable file names) are escaped
+    (``\\x00``, ``\\udcff``)."""
+    text = re.sub(r"\s*[\r\n]+\s*", " ", text.strip())
+    if text.isprintable():
+        return text
+    return "".join(
+        c if c.isprintable() else " " if c == "\t" else c.encode("unicode_escape").decode("ascii")
+        for c in text
+    )
+
+
+def shorten(text: str, limit: int = MAX_ERROR_MESSAGE) -> str:
+    """``text`` cut to ``limit`` characters with "…" in the middle (head two thirds)."""
+    if len(text) <= limit:
+        return text
+    head = (limit - 1) * 2 // 3
+    tail = limit - 1 - head
+    return text[:head] + "…" + (text[-tail:] if tail else "")
+
+
+def error_line(prog: str, message: str, *, kind: str = "error", suffix: str = "") -> str:
+    """The one printable line of a failure, ``PROG: KIND: MESSAGE[SUFFIX]``, where
+    ``MESSAGE[SUFFIX]`` is at most :data:`MAX_ERROR_MESSAGE` characters."""
+    room = max(60, MAX_ERROR_MESSAGE - len(suffix))
+    return f"{printable(prog)}: {kind}: " + shorten(printable(message), room) + suffix
 
 
 def status(args: argparse.Namespace, message: str) -> None:
@@ -282,6 +317,46 @@ def add_traverses_arg(parser: argparse.ArgumentParser, *, many: bool = False) ->
         + "traverse folder or file, or a features table (.csv or .parquet, with its "
         "metadata beside it) written by `rough-map features`",
     )
+    add_allow_outside_arg(parser)
+
+
+def add_allow_outside_arg(parser: argparse.ArgumentParser) -> None:
+    """``--allow-outside DIR`` (repeatable): folders outside a traverse folder whose files
+    the traverse may name. Without it every path in a traverse (clouds, images,
+    height_field), symbolic links followed, must resolve inside the traverse folder."""
+    parser.add_argument(
+        "--allow-outside",
+        action="append",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="also let the traverse name files under DIR, outside its folder (repeatable); "
+        "by default every path in a traverse, symbolic links followed, must stay inside "
+        "the traverse folder",
+    )
+
+
+def open_traverses(args: argparse.Namespace, sources: Any) -> list[Any]:
+    """The TRAVERSE arguments ``sources`` (a path or a list of them) loaded as
+    :class:`rough_map.io.traverse.Traverse` objects that allow the ``--allow-outside``
+    folders; features tables (.csv, .parquet) stay paths.
+
+    Raises
+    ------
+    FileFormatError, SchemaError
+        A traverse file cannot be read or does not follow the schema.
+    """
+    from rough_map.io.traverse import load_traverse
+
+    allowed = tuple(getattr(args, "allow_outside", None) or ())
+    out: list[Any] = []
+    for source in [sources] if isinstance(sources, str | Path) else sources:
+        path = Path(source)
+        if path.is_file() and path.suffix.lower() in (".csv", ".parquet"):
+            out.append(path)
+        else:
+            out.append(load_traverse(path, allow_outside=allowed))
+    return out
 
 
 def add_model_arg(parser: argparse.ArgumentParser, *, required: bool = True) -> None:

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from rough_map.cli._common import emit_json, patch_spec, status, table
+from rough_map.cli._common import emit_json, open_traverses, patch_spec, status, table
 from rough_map.errors import InputError
 from rough_map.features import (
     features_metadata_path,
@@ -35,8 +35,9 @@ def run_traverse(args: argparse.Namespace) -> int:
         subtract_noise=not args.keep_noise,
         auto_spacing=args.spacing == "auto",
     )
+    (traverse,) = open_traverses(args, args.source)
     feats = traverse_features(
-        args.source, extraction, source=args.points_from, n_jobs=args.jobs, progress=args.progress
+        traverse, extraction, source=args.points_from, n_jobs=args.jobs, progress=args.progress
     )
     from rough_map.filter import smooth_table  # scikit-learn and filterpy: only here
 

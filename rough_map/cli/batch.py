@@ -7,6 +7,7 @@ from pathlib import Path
 
 from rough_map.cli._common import (
     NEAR_FAR,
+    add_allow_outside_arg,
     add_jobs_arg,
     add_map_args,
     emit_json,
@@ -59,6 +60,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="PEM files for a tls:// scheduler: the CA, this client's certificate and key",
     )
     add_jobs_arg(p)
+    add_allow_outside_arg(p)
     p.add_argument("--json", action="store_true", help="what was done, as JSON on stdout")
     p.set_defaults(func=run)
 
@@ -77,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
         scheduler=args.scheduler,
         tls=tuple(args.tls) if args.tls else None,
         progress=args.progress,
+        allow_outside=args.allow_outside or (),
     )
     if args.json:
         emit_json(

@@ -23,6 +23,7 @@ from rough_map.cli._common import (
     add_model_arg,
     add_traverses_arg,
     emit_json,
+    open_traverses,
     status,
     table,
 )
@@ -87,7 +88,10 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--out must be a .csv file, not {args.out.name!r}")
     model = load_terrain_model(args.model)
     (tab,) = feature_tables(
-        [args.traverse], model.extraction_, n_jobs=args.jobs, progress=args.progress
+        open_traverses(args, args.traverse),
+        model.extraction_,
+        n_jobs=args.jobs,
+        progress=args.progress,
     )
     pred = model.predict(tab, mode=args.mode)
     cols = tab.columns

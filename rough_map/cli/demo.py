@@ -328,7 +328,8 @@ def _stereo_rows(trav: Traverse) -> tuple[list[list[str]], str]:
     for i, fr in enumerate(trav.frames):
         if fr.left is None or fr.right is None:
             continue
-        left, right = read_image(trav.resolve(fr.left)), read_image(trav.resolve(fr.right))
+        left = read_image(trav.resolve(fr.left, f"frames[{i}].left"))
+        right = read_image(trav.resolve(fr.right, f"frames[{i}].right"))
         t = time.perf_counter()
         cloud = stereo_to_cloud(left, right, calib, patch=extraction.patch)
         times.append(time.perf_counter() - t)

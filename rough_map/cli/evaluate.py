@@ -34,6 +34,7 @@ from rough_map.cli._common import (
     add_model_arg,
     add_traverses_arg,
     emit_json,
+    open_traverses,
     status,
     table,
 )
@@ -104,7 +105,10 @@ def run(args: argparse.Namespace) -> int:
 
     model = load_terrain_model(args.model)
     tables = feature_tables(
-        args.traverses, model.extraction_, n_jobs=args.jobs, progress=args.progress
+        open_traverses(args, args.traverses),
+        model.extraction_,
+        n_jobs=args.jobs,
+        progress=args.progress,
     )
     result = evaluate_model(model, tables, args.mode)
     result["model"] = str(args.model)

@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 from rough_map.cli._common import (
+    add_allow_outside_arg,
     add_jobs_arg,
     add_patch_args,
     add_psd_args,
@@ -52,6 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     add_psd_args(p)
     add_jobs_arg(p)
+    add_allow_outside_arg(p)
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     p.add_argument(
         "--out",

@@ -15,13 +15,14 @@ import importlib
 import logging
 import os
 import pkgutil
+import re
 import shlex
 import sys
 import warnings
 
 import rough_map.cli
 from rough_map import __version__
-from rough_map.cli._common import CommandParser, Parser, add_verbosity_args
+from rough_map.cli._common import CommandParser, Parser, add_verbosity_args, error_line
 from rough_map.errors import RoughMapError
 
 # Every public module of this package that defines ``register`` is a command.
@@ -75,13 +76,20 @@ def main(argv: list[str] | None = None) -> int:
     ``--help`` and ``--version`` return 0.
     """
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser = build_parser()
+    try:
+        parser = build_parser()
+    except Exception as exc:  # a broken install: still one line, no traceback
+        print(failure_line("", exc), file=sys.stderr)
+        return 2
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # argparse's exit after --help, --version or a bad argument
         return exc.code if isinstance(exc.code, int) else 2
     if args.command is None:
-        parser.print_help(sys.stderr)
+        print(
+            "rough-map: error: a command is required (`rough-map --help` lists them)",
+            file=sys.stderr,
+        )
         return 2
     # Configure the 'rough_map' logger for this run only, and put it back afterwards, so
     # that calling main() from Python (tests, notebooks) leaves logging as it was.
@@ -103,15 +111,16 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _log_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    logging.getLogger("rough_map.cli").warning("%s: %s", category.__name__, message)
+    # numpy's floating-point RuntimeWarnings (overflow on absurd coordinates...) say nothing
+    # to a user that the result or the error does not: they are debug lines (-vv).
+    level = logging.DEBUG if issubclass(category, RuntimeWarning) else logging.WARNING
+    logging.getLogger("rough_map.cli").log(level, "%s: %s", category.__name__, message)
 
 
 def _run(args: argparse.Namespace) -> int:
+    """Run the command; every failure is one line on stderr and exit status 2."""
     try:
         return int(args.func(args) or 0)
-    except RoughMapError as exc:
-        print(f"rough-map {args.command}: error: {exc}", file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
         print("rough-map: interrupted", file=sys.stderr)
         return 130
@@ -120,6 +129,79 @@ def _run(args: argparse.Namespace) -> int:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return 141
+    except Exception as exc:  # the last line of defence: one line
+        print(failure_line(args.command, exc), file=sys.stderr, flush=True)
+        return 2
+
+
+def failure_line(command: str, exc: BaseException) -> str:
+    """The one line ``rough-map CMD: error: ...`` for an exception a command raised.
+
+    A :class:`RoughMapError` (also one re-raised from a joblib worker), a bad value of an
+    option found late (``argparse.ArgumentTypeError``), an ``OSError`` (named by its file),
+    a ``MemoryError`` and a killed worker process are errors of the input or the machine;
+    anything else is an internal error, whose traceback ``-vv`` logs.
+    """
+    prog = f"rough-map {command}".rstrip()
+    if isinstance(exc, (RoughMapError, argparse.ArgumentTypeError, argparse.ArgumentError)):
+        log.debug("error", exc_info=exc)
+        return error_line(prog, _text(exc) or type(exc).__name__)
+    if isinstance(exc, MemoryError):
+        log.debug("out of memory", exc_info=exc)
+        detail = _text(exc)
+        return error_line(
+            prog,
+            f"out of memory while running {command}"
+            + (f" ({detail})" if detail else "")
+            + "; try a smaller input or fewer --jobs",
+        )
+    if isinstance(exc, OSError) and not _is_process_pool_error(exc):
+        log.debug("system error", exc_info=exc)
+        return error_line(prog, _os_message(exc))
+    if _is_process_pool_error(exc):
+        log.debug("worker process failed", exc_info=exc)
+        text = _text(exc)
+        codes = re.search(r"exit codes of the workers are (\{[^}]*\})", text)
+        if codes or type(exc).__name__ == "TerminatedWorkerError":
+            what = f" (exit codes {codes.group(1)})" if codes else ""
+            reason = f"a worker process died{what}: out of memory or a crash in a library"
+        else:  # e.g. a result that could not be sent back
+            reason = f"a worker process failed ({text.splitlines()[0] if text else 'no reason'})"
+        return error_line(prog, reason + "; rerun with -j 1 to see the error")
+    if log.isEnabledFor(logging.DEBUG):
+        log.error("internal error", exc_info=exc)
+    return error_line(
+        prog,
+        f"{type(exc).__name__}: {_text(exc)}",
+        kind="internal error",
+        suffix=" (please report; rerun with -vv for the traceback)",
+    )
+
+
+def _text(exc: BaseException) -> str:
+    try:
+        return str(exc)
+    except Exception:  # an exception whose str() fails
+        return repr(exc.args)[:200]
+
+
+def _os_message(exc: OSError) -> str:
+    """``FILE: reason`` (``FILE -> FILE2: reason`` for a rename), or the message as is."""
+    reason = exc.strerror or _text(exc) or type(exc).__name__
+    names = [
+        os.fsdecode(n) if isinstance(n, bytes) else str(n)
+        for n in (exc.filename, exc.filename2)
+        if n is not None
+    ]
+    return f"{' -> '.join(names)}: {reason}" if names else reason
+
+
+def _is_process_pool_error(exc: BaseException) -> bool:
+    """A process pool broke: a worker was killed (joblib/loky's ``TerminatedWorkerError``),
+    or a result could not be sent back."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    return isinstance(exc, BrokenProcessPool) or type(exc).__name__ == "TerminatedWorkerError"
 
 
 if __name__ == "__main__":

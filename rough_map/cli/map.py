@@ -13,6 +13,7 @@ from rough_map.cli._common import (
     add_traverses_arg,
     emit_json,
     near_far_settings,
+    open_traverses,
     status,
     table,
 )
@@ -32,7 +33,9 @@ def register(sub: argparse._SubParsersAction) -> None:
             "per layer, DIR/labels.csv, DIR/features.csv (with its metadata in "
             "DIR/features.csv.json) and, with --state, DIR/map_state.npz (the fusion sums, "
             "which `rough-map batch` adds up across traverses). Each cloud is read once; "
-            "-j N spreads the frames over N processes with the same result."
+            "-j N spreads the frames over N processes with the same result. DIR is written "
+            "as a set: staged beside it and swapped in whole when complete, so it holds "
+            "either the old outputs or the new ones; your own files in DIR are kept."
         ),
     )
     add_traverses_arg(p)
@@ -77,8 +80,9 @@ def run(args: argparse.Namespace) -> int:
 
     out: Path = args.out
     near_far = NEAR_FAR[args.near_far]
+    (traverse,) = open_traverses(args, args.traverse)
     result = analyse(
-        args.traverse,
+        traverse,
         args.model or default_model(),
         resolution=args.resolution,
         near_far=near_far,

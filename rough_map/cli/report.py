@@ -12,6 +12,7 @@ from rough_map.cli._common import (
     add_model_arg,
     add_traverses_arg,
     near_far_settings,
+    open_traverses,
     status,
 )
 from rough_map.cli.map import default_model
@@ -44,15 +45,19 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from rough_map._output_set import output_set
     from rough_map.evaluation import evaluate_model
     from rough_map.export import export_map
     from rough_map.export.report import write_report
-    from rough_map.workflow import analyse, level_edges, write_tables
+    from rough_map.workflow import MAP_OUTPUTS, analyse, level_edges, write_tables
+
+    owned = (*MAP_OUTPUTS, "index.html", "fig_*.png", "evaluation.json")
 
     near_far = NEAR_FAR[args.near_far]
     model_path = args.model or default_model()
+    (traverse,) = open_traverses(args, args.traverse)
     result = analyse(
-        args.traverse,
+        traverse,
         model_path,
         resolution=args.resolution,
         near_far=near_far,
@@ -64,10 +69,10 @@ def run(args: argparse.Namespace) -> int:
     if any(result.features["label"]):
         evaluation = evaluate_model(result.model, [result.features])
     out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    export_map(result.map, out, name="map", png=True)  # the page links the layer PNGs
-    write_tables(result, out)
-    paths = write_report(result, out, evaluation=evaluation, level_edges=level_edges(result))
-    print(paths["index"])
+    with output_set(out, owned=owned) as stage:  # the folder swapped in whole
+        export_map(result.map, stage, name="map", png=True)  # the page links the layer PNGs
+        write_tables(result, stage)
+        write_report(result, stage, evaluation=evaluation, level_edges=level_edges(result))
+    print(out / "index.html")
     status(args, f"report of {result.traverse.name} in {out}")
     return 0

@@ -41,6 +41,7 @@ from rough_map.cli._common import (
     emit_json,
     existing_path,
     int_at_least,
+    open_traverses,
     patch_spec,
     status,
     table,
@@ -121,12 +122,16 @@ def run(args: argparse.Namespace) -> int:
     levels = load_roughness_levels(args.levels)
     _check_labelled(args.traverses)
     extraction = Extraction(patch=patch_spec(args), use_imu=not args.no_tilt).to_dict()
-    tables = feature_tables(args.traverses, extraction, n_jobs=args.jobs, progress=args.progress)
+    sources = open_traverses(args, args.traverses)
+    tables = feature_tables(sources, extraction, n_jobs=args.jobs, progress=args.progress)
     if args.save_features is not None:
-        args.save_features.mkdir(parents=True, exist_ok=True)
-        for src, tab in zip(args.traverses, tables, strict=True):
-            if src.suffix.lower() not in (".csv", ".parquet"):
-                write_features(tab, args.save_features / f"{tab.name or src.name}.csv")
+        from rough_map._output_set import output_set
+
+        # a set: staged beside the folder and swapped in whole; other files there are kept
+        with output_set(args.save_features) as stage:
+            for src, tab in zip(args.traverses, tables, strict=True):
+                if src.suffix.lower() not in (".csv", ".parquet"):
+                    write_features(tab, stage / f"{tab.name or src.name}.csv")
     model = make_terrain_model(
         kind=args.classifier,
         mode=args.mode,

@@ -26,6 +26,7 @@ relates no engineering CRS), and is refused on a georeferenced map.
 from __future__ import annotations
 
 import csv
+import io
 import logging
 import math
 from pathlib import Path
@@ -33,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from rough_map._bounded import clip, read_document_text
 from rough_map._files import PathLike
 from rough_map.errors import FileFormatError, InputError
 from rough_map.evaluation.score import (
@@ -214,11 +216,38 @@ def read_map_dir(map_dir: PathLike) -> dict[str, Any]:
     FileFormatError
         Not a map folder (no ``*_class.tif``), or class files of different grids.
     """
-    import rasterio
+    from rasterio._err import CPLE_BaseError
+    from rasterio.errors import RasterioError
 
     map_dir = Path(map_dir)
     if not map_dir.is_dir():
         raise FileFormatError(map_dir, "no such map folder")
+    try:
+        return _read_map_dir(map_dir)
+    except (RasterioError, CPLE_BaseError) as exc:
+        msg = clip(str(exc), 100)
+        raise FileFormatError(map_dir, f"cannot read a map file: {msg}") from None
+
+
+#: Most cells of a map raster read whole, and the most per byte of its file (deflate).
+_MAX_CELLS = 2**31
+_CELLS_PER_BYTE = 1100
+
+
+def _check_size(path: Path, ds: Any) -> None:
+    """Refuse a raster whose declared size its file cannot hold (compressed) or beyond
+    :data:`_MAX_CELLS`, before reading it."""
+    cells = int(ds.width) * int(ds.height) * int(ds.count)
+    limit = min(_MAX_CELLS, path.stat().st_size * _CELLS_PER_BYTE + 2**20)
+    if cells > limit:
+        raise FileFormatError(
+            path, f"declares {ds.width} x {ds.height} x {ds.count} cells, more than it holds"
+        )
+
+
+def _read_map_dir(map_dir: Path) -> dict[str, Any]:
+    import rasterio
+
     stems = sorted({f.name[: -len("_class.tif")] for f in map_dir.glob("*_class.tif")} - {""})
     stems = [s for s in stems if not s.endswith("_far")]
     if not stems:
@@ -230,6 +259,7 @@ def read_map_dir(map_dir: PathLike) -> dict[str, Any]:
             layer = _tags_layer(ds)
             if ds.count != 1 or ds.dtypes[0] != "uint8" or not layer:
                 continue
+            _check_size(f, ds)
             try:
                 names = read_class_names(f, ds)
             except FileFormatError:
@@ -239,7 +269,9 @@ def read_map_dir(map_dir: PathLike) -> dict[str, Any]:
                 out["resolution_m"] = abs(ds.transform.a)
             elif ds.shape != out["shape"] or ds.transform != out["transform"]:
                 raise FileFormatError(f, "not on the grid of the other class files", "transform")
-            names = {k: v for k, v in names.items() if k != ds.nodata}
+            names = {k: v for k, v in names.items() if k != ds.nodata and 0 <= k <= 255}
+            if not names:
+                continue  # names only for values a uint8 layer cannot hold
             raw = ds.read(1)
             values = raw.astype(np.int64)
             values[(raw == ds.nodata) | ~np.isin(raw, list(names))] = -1
@@ -251,6 +283,7 @@ def read_map_dir(map_dir: PathLike) -> dict[str, Any]:
     values_file = map_dir / f"{stem}.tif"
     if values_file.is_file():
         with rasterio.open(values_file) as ds:
+            _check_size(values_file, ds)
             bands = {d: i + 1 for i, d in enumerate(ds.descriptions) if d}
             if ds.shape == out["shape"]:
                 for layer, entry in out["layers"].items():
@@ -265,8 +298,10 @@ def _read_path(path: Path) -> np.ndarray | None:
     if not path.is_file():
         log.warning("%s: not found; no accuracy by distance from the path", path)
         return None
-    with path.open(newline="", encoding="utf-8") as fh:
-        rows = list(csv.DictReader(fh))
+    try:
+        rows = list(csv.DictReader(io.StringIO(read_document_text(path), newline="")))
+    except csv.Error as exc:
+        raise FileFormatError(path, f"not a CSV table: {clip(str(exc), 60)}") from None
     try:
         xy = np.array([[float(r["x"]), float(r["y"])] for r in rows], dtype=float)
     except (KeyError, TypeError, ValueError):

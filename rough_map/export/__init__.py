@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+from rough_map._files import make_dir
 from rough_map.export.geotiff import (
     class_layers,
     value_layers,
@@ -61,7 +62,7 @@ def export_map(
         ``"gridmap_bag"``: the bag folder ``<name>_gridmap``.
     """
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    make_dir(out)
     paths: dict[str, Path] = {}
     if value_layers(grid):
         paths["geotiff"] = write_values_geotiff(grid, out / f"{name}.tif")

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from rough_map import iso8608
-from rough_map._files import atomic_output
+from rough_map._files import atomic_output, make_dir
 from rough_map.errors import InputError
 from rough_map.export.layout import MapPanel, data_view, draw_map_panels
 from rough_map.export.profiles import LEVEL_COLOURS, class_colour
@@ -72,7 +72,7 @@ def _save(fig: Any, path: str | Path, *, tight: bool = False, layout: bool = Tru
     crops the PNG to what is drawn (nothing cut off).
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    make_dir(path.parent)
     if layout and fig.get_layout_engine() is None:
         fig.tight_layout()
     with atomic_output(path) as tmp:

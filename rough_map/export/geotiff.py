@@ -19,7 +19,10 @@ geodetic origin, a transverse Mercator centred on that origin; without origin, a
 engineering CRS (``LOCAL_CS``, metres). Dataset tags give ``crs_code``, ``frame_id``,
 ``geodetic_origin`` (JSON ``[lat, lon, alt]``), ``class_names``, ``level_names``.
 
-Files are written to a temporary name and moved into place. The bands go there through an
+Files are written to a temporary name, checked (the GeoTIFF reopens and its last block
+reads back) and moved into place; GDAL's errors, raised or only printed (a full disk), are
+a :class:`~rough_map.errors.FileFormatError` naming the file
+(:func:`rough_map._files.gdal_errors`), and the old file stays. The bands go there through an
 intermediate tiled GTiff on disk beside it, a few tiles at a time with GDAL's cache bounded,
 so that writing a long map needs little memory beyond the map itself.
 """
@@ -36,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from rough_map import __version__
-from rough_map._files import atomic_output
+from rough_map._files import atomic_output, gdal_errors
 from rough_map.config import Crs
 from rough_map.errors import InputError
 from rough_map.export.profiles import (
@@ -230,7 +233,7 @@ def _write(
         if driver == "COG" and "COG" not in env.drivers():
             log.info("GDAL has no COG driver; writing a tiled GTiff with overviews")
             driver = "GTiff"
-        with atomic_output(path) as tmp:
+        with atomic_output(path) as tmp, gdal_errors(path):
             src_path = tmp.with_name(f"{tmp.stem}.src.tif")
             try:
                 with rasterio.open(

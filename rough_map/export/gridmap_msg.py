@@ -21,6 +21,8 @@ from typing import Any
 import numpy as np
 
 from rough_map.errors import FileFormatError, InputError
+from rough_map.io.rosbag.checks import check_bag
+from rough_map.io.rosbag.reader import available_topics, read_errors, topic_field, why
 from rough_map.map.grid import GridMap, GridMapData, to_grid_map
 
 log = logging.getLogger(__name__)
@@ -132,24 +134,49 @@ def grid_map_message(data: GridMapData, typestore: Any, *, stamp_ns: int = 0) ->
 
 
 def message_to_grid_map(msg: Any) -> GridMapData:
-    """The :class:`~rough_map.map.grid.GridMapData` of a deserialized GridMap message."""
+    """The :class:`~rough_map.map.grid.GridMapData` of a deserialized GridMap message.
+
+    Raises
+    ------
+    InputError
+        A resolution that is not finite and positive, lengths that are not finite or give
+        a grid beyond 2**31 cells a side, layer names and data arrays that do not pair up,
+        a layer whose size is not ``n_x * n_y``, or a start index other than 0.
+    """
     info = msg.info
     res = float(info.resolution)
-    nx, ny = int(round(info.length_x / res)), int(round(info.length_y / res))
+    length = (float(info.length_x), float(info.length_y))
+    position = (float(info.pose.position.x), float(info.pose.position.y))
+    if not (math.isfinite(res) and res > 0):
+        raise InputError(f"resolution {res!r} m is not a finite positive number")
+    if not all(math.isfinite(v) and v >= 0 for v in length):
+        raise InputError(f"lengths {length!r} m are not finite and >= 0")
+    if not all(math.isfinite(v) for v in position):
+        raise InputError(f"position {position!r} m is not finite")
+    cells = [v / res for v in length]
+    if not all(c < 2**31 for c in cells):
+        raise InputError(f"lengths {length!r} m at {res!r} m give more than 2**31 cells a side")
+    nx, ny = round(cells[0]), round(cells[1])
     if msg.outer_start_index or msg.inner_start_index:
         raise InputError("circularly shifted grid maps (start index != 0) are not supported")
+    if len(msg.layers) != len(msg.data):
+        raise InputError(f"{len(msg.layers)} layer names for {len(msg.data)} data arrays")
+    if not msg.data and nx * ny > 2**24:
+        raise InputError(f"a grid of {nx} x {ny} cells without any layer")
     layers = {}
     for name, arr in zip(msg.layers, msg.data, strict=True):
+        size = len(arr.data)
+        if size != nx * ny:
+            label = name if name.isprintable() and len(name) <= 30 else repr(name)[:30]
+            raise InputError(f"layer {label!r} has {size} values; expected {nx} x {ny}")
         values = np.asarray(arr.data, dtype=np.float64)
-        if values.size != nx * ny:
-            raise InputError(f"layer {name!r} has {values.size} values; expected {nx * ny}")
         row_major = bool(arr.layout.dim) and arr.layout.dim[0].label == "row_index"
         layers[name] = values.reshape(nx, ny) if row_major else values.reshape(ny, nx).T
     return GridMapData(
         frame_id=msg.header.frame_id,
         resolution=res,
-        position=(float(info.pose.position.x), float(info.pose.position.y)),
-        length=(float(info.length_x), float(info.length_y)),
+        position=position,
+        length=length,
         layers=layers,
         basic_layers=tuple(msg.basic_layers),
     )
@@ -214,13 +241,25 @@ def read_gridmap_bag(path: str | Path, topic: str | None = None) -> list[GridMap
     Parameters
     ----------
     path : str or Path
-        The bag folder.
+        The bag folder (or its ``.mcap``/``.db3`` file).
     topic : str, optional
         Only this topic (default: every GridMap connection).
-    """
-    from rosbags.rosbag2 import Reader, ReaderError
 
+    Raises
+    ------
+    FileFormatError
+        The bag is missing, truncated or corrupt; ``topic`` carries no GridMap (the
+        message lists the available topics); a message is undecodable or inconsistent
+        (its index and topic are named).
+    """
+    from rosbags.rosbag2 import Reader
+
+    path = Path(path)
+    if not path.exists():
+        raise FileFormatError(path, "no such bag")
+    check_bag(path)
     store = grid_map_typestore()
+    maps = []
     try:
         with Reader(path) as reader:
             conns = [
@@ -228,9 +267,36 @@ def read_gridmap_bag(path: str | Path, topic: str | None = None) -> list[GridMap
                 for c in reader.connections
                 if c.msgtype == GRID_MAP and (topic is None or c.topic == topic)
             ]
-            return [
-                message_to_grid_map(store.deserialize_cdr(raw, GRID_MAP))
-                for _, _, raw in reader.messages(connections=conns)
-            ]
-    except (ReaderError, OSError, KeyError) as err:
-        raise FileFormatError(path, f"could not read grid maps: {err}") from None
+            if not conns:
+                if topic is None:
+                    return []
+                raise FileFormatError(
+                    path,
+                    f"no {GRID_MAP} on {topic_field(topic)}; available topics: "
+                    f"{available_topics({c.topic for c in reader.connections})}",
+                    field=topic_field(topic),
+                )
+            for index, (conn, _, raw) in enumerate(reader.messages(connections=conns)):
+                maps.append(_grid_map_of(path, store, conn.topic, index, raw))
+    except FileFormatError:
+        raise
+    except read_errors() as err:
+        raise FileFormatError(
+            path, f"could not read grid maps (truncated or corrupt?): {why(err)}"
+        ) from None
+    return maps
+
+
+def _grid_map_of(path: Path, store: Any, topic: str, index: int, raw: bytes) -> GridMapData:
+    """The map of message ``index`` (raw CDR bytes) of ``topic``."""
+
+    try:
+        msg = store.deserialize_cdr(raw, GRID_MAP)
+    except read_errors() as err:
+        raise FileFormatError(
+            path, f"undecodable GridMap message {index}: {why(err)}", field=topic_field(topic)
+        ) from None
+    try:
+        return message_to_grid_map(msg)
+    except InputError as err:
+        raise FileFormatError(path, f"message {index}: {err}", field=topic_field(topic)) from None

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from rough_map._files import atomic_output
+from rough_map._files import atomic_output, make_dir
 from rough_map.errors import RoughMapError
 from rough_map.export import figures as fig
 from rough_map.export.report_html import write_index
@@ -63,7 +63,7 @@ def write_report(
         The files written, ``index`` last.
     """
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    make_dir(out)
     figs: dict[str, tuple[Path, str]] = {}
     labels, which = _labels(result)
     figs["path"] = _path_figure(result, labels, which, out)

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from rough_map.errors import RoughMapError
+from rough_map.errors import InputError, RoughMapError
 from rough_map.features.table import (
     BOOL_COLUMNS,
     COLUMNS,
@@ -33,6 +33,7 @@ from rough_map.features.table import (
     FeatureTable,
 )
 from rough_map.patch import Extraction, GriddedPatch, PatchSpec, grid_points, points_in_patch
+from rough_map.patch._params import check_int, check_real
 from rough_map.psd import PatchRoughness, patch_roughness
 
 log = logging.getLogger(__name__)
@@ -89,6 +90,10 @@ def frame_features(
         Patch-mean PSD in m³/rad (None when invalid).
     """
     ex = _as_extraction(extraction)
+    check_int("min_points", min_points, low=0, high=2**62, unit="points")
+    check_real("min_fill", min_fill, "", low=0.0, high=1.0)
+    for name, angle in (("roll", roll), ("pitch", pitch)):
+        check_real(name, angle, "rad", low=-math.pi / 2, high=math.pi / 2, none=True)
     row: dict[str, Any] = {"valid": False, "reason": "", "n_points": 0}
     try:
         ex = ex.resolve(points_in_patch(points, ex.patch)) if ex.auto_spacing else ex
@@ -169,7 +174,14 @@ def cloud_roughness(
 def _as_extraction(extraction: Extraction | PatchSpec | None) -> Extraction:
     if isinstance(extraction, PatchSpec):
         return Extraction(patch=extraction)
-    return extraction or Extraction()
+    if extraction is None:
+        return Extraction()
+    if not isinstance(extraction, Extraction):
+        raise InputError(
+            "extraction must be an Extraction, a PatchSpec (geometry in m) or None; got "
+            f"{type(extraction).__name__}"
+        )
+    return extraction
 
 
 def _fit(grid: GriddedPatch, ex: Extraction, heights: np.ndarray) -> PatchRoughness:

@@ -10,14 +10,19 @@ in its key-value metadata under ``rough_map``.
 from __future__ import annotations
 
 import csv
+import hashlib
+import io
 import json
+import logging
 import math
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from rough_map import __version__
+from rough_map._bounded import clip, parse_json, read_document_text, short
 from rough_map._files import PathLike, atomic_output
 from rough_map.errors import FileFormatError, InputError
 from rough_map.features.table import (
@@ -80,7 +85,9 @@ def write_features(table: FeatureTable, path: PathLike) -> Path:
     the traverse name and the wavenumbers of the ``psd_NN`` columns, which
     :func:`read_features` needs) is written to ``<path>.json`` beside it, e.g.
     ``features.csv.json``. Parquet keeps the same metadata in its key-value metadata.
-    Both files are written atomically, the metadata first.
+    Both files are written and checked before either replaces an old one; the metadata
+    holds the table's SHA-256 (``table_sha256``), so a pair that does not belong together
+    (a run killed between the two renames, or a table edited since) shows.
 
     Returns
     -------
@@ -107,14 +114,43 @@ def write_features(table: FeatureTable, path: PathLike) -> Path:
         return path
     if suffix != ".csv":
         raise InputError(f"features are written as .csv or .parquet, not {path.suffix!r}")
-    with atomic_output(features_metadata_path(path)) as tmp:
-        tmp.write_text(meta_text + "\n", encoding="utf-8")
-    with atomic_output(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
-        writer = csv.writer(fh)
-        writer.writerow(names)
-        for i in range(len(table)):
-            writer.writerow([_fmt(data[c][i]) for c in names])
+    buf = io.StringIO(newline="")
+    writer = csv.writer(buf)
+    writer.writerow(names)
+    for i in range(len(table)):
+        writer.writerow([_fmt(data[c][i]) for c in names])
+    body = buf.getvalue().encode("utf-8")
+    meta = features_metadata(table)
+    meta["table_sha256"] = hashlib.sha256(body).hexdigest()  # ties the pair together
+    meta_text = json.dumps(meta, indent=1, ensure_ascii=False)
+    # both files are written and checked before either takes its name (the table, then
+    # the metadata, as the stack unwinds): a run killed between the two renames leaves a
+    # pair whose table_sha256 disagrees, which read_features reports
+    with ExitStack() as stack:
+        meta_tmp = stack.enter_context(atomic_output(features_metadata_path(path)))
+        meta_tmp.write_text(meta_text + "\n", encoding="utf-8")
+        table_tmp = stack.enter_context(atomic_output(path))
+        table_tmp.write_bytes(body)
     return path
+
+
+def _check_pair(path: Path, sidecar: Path, text: str) -> None:
+    """Warn when a CSV is not the one its metadata was written with (``table_sha256``):
+    edited since, or a run killed between the renames of the pair."""
+    try:
+        expected = json.loads(text).get("table_sha256")
+        if not isinstance(expected, str):
+            return  # written before rough_map recorded it
+        actual = hashlib.sha256(path.read_bytes()).hexdigest()
+    except (OSError, ValueError, AttributeError):
+        return
+    if actual != expected:
+        logging.getLogger(__name__).warning(
+            "%s is not the table its metadata %s was written with (edited since, or an "
+            "interrupted write): check it, or write it again with rough-map features",
+            path,
+            sidecar.name,
+        )
 
 
 def _fmt(v: object) -> str:
@@ -138,49 +174,63 @@ def read_features(path: PathLike) -> FeatureTable:
         bad value (naming the column).
     """
     path = Path(path)
-    if not path.is_file():
+    try:
+        there = path.is_file()
+    except OSError:  # a name too long
+        there = False
+    if not there:
         raise FileFormatError(path, "no such features file")
     if path.suffix.lower() == ".parquet":
         raw, meta = _read_parquet(path)
     else:
         raw, meta = _read_csv(path)
     omega = np.asarray(meta["omega"], dtype=float)
+    if omega.size and not (np.all(np.isfinite(omega)) and np.all(omega > 0)):
+        raise FileFormatError(path, "wavenumbers must be finite and positive", "omega_rad_per_m")
     name = meta["name"]
     missing = [c for c in COLUMNS if c not in raw and c not in OPTIONAL_COLUMNS]
     if missing:
-        raise FileFormatError(path, f"missing columns {missing}", field=missing[0])
+        raise FileFormatError(path, f"missing columns {clip(str(missing), 80)}", field=missing[0])
     n_rows = len(next(iter(raw.values()))) if raw else 0
     cols: dict[str, np.ndarray] = {}
     for c in COLUMNS:
         v = raw[c] if c in raw else np.full(n_rows, "", dtype=object)  # an older table
-        try:
-            if c in TEXT_COLUMNS:
-                cols[c] = np.array(["" if x is None else str(x) for x in v], dtype=object)
-            elif c in BOOL_COLUMNS:
-                cols[c] = np.array([str(x).lower() in ("true", "1") for x in v])
-            elif c in INT_COLUMNS:
-                cols[c] = np.array([int(float(x)) if str(x) != "" else 0 for x in v])
-            else:
-                cols[c] = np.array([float(x) if x not in ("", None) else math.nan for x in v])
-        except ValueError as exc:
-            raise FileFormatError(path, f"bad value: {exc}", field=c) from None
+        if c in TEXT_COLUMNS:
+            cols[c] = np.array(["" if x is None else str(x) for x in v], dtype=object)
+        elif c in BOOL_COLUMNS:
+            cols[c] = np.array([str(x).lower() in ("true", "1") for x in v], dtype=bool)
+        else:
+            cols[c] = _numbers(path, c, v, integer=c in INT_COLUMNS)
     names = [f"psd_{k:02d}" for k in range(1, omega.size + 1)]
-    try:
-        log_psd = (
-            np.column_stack(
-                [
-                    np.array([float(x) if x not in ("", None) else math.nan for x in raw[n]])
-                    for n in names
-                ]
-            )
-            if names
-            else np.zeros((len(cols["t"]), 0))
-        )
-    except KeyError as exc:
-        raise FileFormatError(path, "missing spectrum column", field=str(exc)) from None
-    except ValueError as exc:
-        raise FileFormatError(path, f"bad value in a spectrum column: {exc}") from None
+    absent = [n for n in names if n not in raw]
+    if absent:
+        raise FileFormatError(path, "missing spectrum column", field=absent[0])
+    log_psd = (
+        np.column_stack([_numbers(path, n, raw[n]) for n in names])
+        if names
+        else np.zeros((n_rows, 0))
+    )
     return FeatureTable(cols, omega, log_psd, name)
+
+
+def _numbers(path: Path, column: str, values: Any, integer: bool = False) -> np.ndarray:
+    """A numeric column (empty cells: NaN, or 0 for integers), or a FileFormatError naming
+    the column and the row of the first bad cell."""
+    out = np.empty(len(values), dtype=np.int64 if integer else float)
+    for i, x in enumerate(values):
+        try:
+            if x in ("", None):
+                out[i] = 0 if integer else math.nan
+            elif integer:
+                out[i] = int(float(x))  # "3.0" too
+            else:
+                out[i] = float(x)
+        except (ValueError, TypeError, OverflowError):
+            kind = "a whole number" if integer else "a number"
+            raise FileFormatError(
+                path, f"row {i + 1}: expected {kind}, got {short(x, 40)}", field=column
+            ) from None
+    return out
 
 
 def _read_parquet(path: Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -188,37 +238,58 @@ def _read_parquet(path: Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         import pyarrow.parquet as pq
     except ImportError:
         raise InputError("reading .parquet needs pyarrow: pip install pyarrow") from None
-    tbl = pq.read_table(path)
-    kv = tbl.schema.metadata or {}
-    raw = {k: np.asarray(tbl[k].to_pylist(), dtype=object) for k in tbl.column_names}
+    import pyarrow as pa
+
+    try:
+        tbl = pq.read_table(path)
+        kv = tbl.schema.metadata or {}
+        raw = {k: np.asarray(tbl[k].to_pylist(), dtype=object) for k in tbl.column_names}
+    except (pa.ArrowException, OSError, ValueError, TypeError, MemoryError) as exc:
+        raise FileFormatError(path, f"not a readable Parquet file: {clip(str(exc), 80)}") from None
     if b"rough_map" in kv:
-        meta = _parse_metadata(kv[b"rough_map"].decode(), path, "Parquet metadata 'rough_map'")
+        text = kv[b"rough_map"].decode("utf-8", "replace")
+        meta = _parse_metadata(text, path, "Parquet metadata 'rough_map'")
     elif b"omega" in kv:  # rough_map 0.1
-        omega = [float(v) for v in kv[b"omega"].decode().split(",") if v]
-        meta = {"omega": omega, "name": kv.get(b"name", b"").decode()}
+        text = kv[b"omega"].decode("utf-8", "replace")
+        meta = {
+            "omega": _old_omega(text, path),
+            "name": kv.get(b"name", b"").decode("utf-8", "replace"),
+        }
     else:
         raise FileFormatError(path, "no rough_map metadata: not written by rough-map features")
     return raw, meta
 
 
 def _read_csv(path: Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    with open(path, newline="", encoding="utf-8") as fh:
-        first = fh.readline()
-        if first.startswith("# rough_map features"):  # rough_map 0.1: metadata in line 1
-            if "omega_rad_per_m=" not in first:
-                raise FileFormatError(path, "not a rough_map features table (header line)")
-            meta = {
-                "name": first[len("# rough_map features of ") :].split(";")[0],
-                "omega": [float(v) for v in first.split("omega_rad_per_m=")[1].split(",")],
-            }
-        else:
-            fh.seek(0)
-            meta = None
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except OSError as exc:
+        raise FileFormatError(path, f"cannot read: {clip(str(exc.strerror or exc), 60)}") from None
+    except UnicodeDecodeError as exc:
+        raise FileFormatError(path, f"not UTF-8 text (byte {exc.start})") from None
+    fh = io.StringIO(text, newline="")
+    first = fh.readline()
+    meta: dict[str, Any] | None = None
+    if first.startswith("# rough_map features"):  # rough_map 0.1: metadata in line 1
+        if "omega_rad_per_m=" not in first:
+            raise FileFormatError(path, "not a rough_map features table (header line)")
+        meta = {
+            "name": first[len("# rough_map features of ") :].split(";")[0].strip(),
+            "omega": _old_omega(first.split("omega_rad_per_m=")[1], path),
+        }
+    else:
+        fh.seek(0)
+    try:
         reader = csv.reader(fh)
         header = next(reader, None)
         if header is None:
             raise FileFormatError(path, "empty: no column header")
         body = list(reader)
+    except csv.Error as exc:
+        raise FileFormatError(path, f"not a CSV table: {clip(str(exc), 60)}") from None
+    duplicated = sorted({h for h in header if header.count(h) > 1})
+    if duplicated:
+        raise FileFormatError(path, "a column appears twice", field=clip(duplicated[0], 40))
     if meta is None:
         meta = _csv_metadata(path, header)
     raw = {
@@ -226,6 +297,16 @@ def _read_csv(path: Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         for j, h in enumerate(header)
     }
     return raw, meta
+
+
+def _old_omega(text: str, path: Path) -> list[float]:
+    """The wavenumbers of a rough_map 0.1 table (comma-separated, rad/m)."""
+    try:
+        return [float(v) for v in text.strip().split(",") if v.strip()]
+    except ValueError:
+        raise FileFormatError(
+            path, f"expected numbers, got {short(text.strip(), 40)}", "omega_rad_per_m"
+        ) from None
 
 
 def _csv_metadata(path: Path, header: list[str]) -> dict[str, Any]:
@@ -239,11 +320,9 @@ def _csv_metadata(path: Path, header: list[str]) -> dict[str, Any]:
             "psd_NN columns); keep the two files together, or write the table again with "
             "`rough-map features`",
         )
-    try:
-        text = sidecar.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise FileFormatError(sidecar, f"cannot read the metadata: {exc}") from None
+    text = read_document_text(sidecar)
     meta = _parse_metadata(text, sidecar, "metadata")
+    _check_pair(path, sidecar, text)
     n_psd = sum(h.startswith("psd_") for h in header)
     if len(meta["omega"]) != n_psd:
         raise FileFormatError(
@@ -255,17 +334,15 @@ def _csv_metadata(path: Path, header: list[str]) -> dict[str, Any]:
 
 
 def _parse_metadata(text: str, where: Path, what: str) -> dict[str, Any]:
-    try:
-        doc = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise FileFormatError(where, f"{what} is not JSON: {exc}") from None
+    doc = parse_json(text, where)
     if not isinstance(doc, dict) or doc.get("format") != FEATURES_FORMAT:
         raise FileFormatError(where, f"{what} is not rough_map features metadata", "format")
     version = doc.get("format_version")
     if not isinstance(version, int) or version > FEATURES_FORMAT_VERSION:
         raise FileFormatError(
             where,
-            f"format_version {version!r}; this rough_map reads up to {FEATURES_FORMAT_VERSION}",
+            f"format_version {short(version, 30)}; this rough_map reads up to "
+            f"{FEATURES_FORMAT_VERSION}",
             "format_version",
         )
     omega = doc.get("omega_rad_per_m")

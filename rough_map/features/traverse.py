@@ -201,7 +201,7 @@ class FeatureCollector:
 
 
 def feature_tables(
-    sources: Sequence[PathLike],
+    sources: Sequence[PathLike | Traverse],
     extraction: Extraction | Mapping[str, Any] | None = None,
     *,
     n_jobs: int = 1,
@@ -211,8 +211,8 @@ def feature_tables(
 
     Parameters
     ----------
-    sources : sequence of str or Path
-        Traverse folders or files (features are computed with ``extraction``), or features
+    sources : sequence of str, Path or Traverse
+        Traverses, their folders or files (features are computed with ``extraction``), or features
         tables (``.csv``/``.parquet`` written by ``rough-map features``, read as they are).
     extraction : Extraction or dict, optional
         The patch and estimator options (:class:`rough_map.patch.Extraction`, or its
@@ -229,6 +229,9 @@ def feature_tables(
     ex = Extraction.from_dict(extraction)
     tables = []
     for source in sources:
+        if isinstance(source, Traverse):
+            tables.append(traverse_features(source, ex, n_jobs=n_jobs, progress=progress))
+            continue
         path = Path(source)
         if path.is_file() and path.suffix.lower() in (".csv", ".parquet"):
             tables.append(read_features(path))

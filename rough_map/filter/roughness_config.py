@@ -20,28 +20,33 @@ __all__ = ["CONFIG_FILE", "RoughnessSmoothingConfig"]
 CONFIG_FILE = "roughness_smoothing.yaml"
 
 
+#: Bounds of the noise model's values (their squares and products stay finite and
+#: covariances invertible).
+_SMALL, _BIG = 1e-9, 1e6
+
+
 class _Rates(BaseModel):
     """Process noise of ln R and w, 1/m."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
-    lnR: float = Field(gt=0, allow_inf_nan=False)
-    w: float = Field(gt=0, allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    lnR: float = Field(gt=0, le=_BIG, allow_inf_nan=False)
+    w: float = Field(gt=0, le=_BIG, allow_inf_nan=False)
 
 
 class _Lengths(BaseModel):
     """Error lengths in m of the PSD level at the pivot and of w."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
-    level: float = Field(gt=0, allow_inf_nan=False)
-    w: float = Field(gt=0, allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    level: float = Field(gt=0, le=_BIG, allow_inf_nan=False)
+    w: float = Field(gt=0, le=_BIG, allow_inf_nan=False)
 
 
 class _Spread(BaseModel):
     """Standard deviations of ln R and w and their correlation."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
-    sd_lnR: float = Field(gt=0, allow_inf_nan=False)
-    sd_w: float = Field(gt=0, allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    sd_lnR: float = Field(ge=_SMALL, le=_BIG, allow_inf_nan=False)
+    sd_w: float = Field(ge=_SMALL, le=_BIG, allow_inf_nan=False)
     corr: float = Field(gt=-1, lt=1)
 
     def cov(self) -> NDArray[np.float64]:
@@ -89,15 +94,15 @@ class RoughnessSmoothingConfig(BaseModel):
         Where the numbers come from (traverses, counts); not used.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     process_noise: _Rates
     measurement: _Spread
     error_length: _Lengths
     jump: _Spread
     alpha: float = Field(0.01, gt=0, lt=1)
-    window: float = Field(5.0, gt=0, allow_inf_nan=False)
-    min_process_noise: float = Field(1e-5, gt=0, allow_inf_nan=False)
+    window: float = Field(5.0, gt=0, le=_BIG, allow_inf_nan=False)
+    min_process_noise: float = Field(1e-5, gt=0, le=_BIG, allow_inf_nan=False)
     training: dict[str, Any] = Field(default_factory=dict)
 
 

@@ -4,7 +4,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from rough_map._bounded import clip as short
+from rough_map._bounded import short as quote
 from rough_map.errors import FileFormatError
+
+__all__ = ["MAX_MEMBER_BYTES", "MAX_POINTS", "check_count", "check_readable", "quote", "short"]
+
+MAX_POINTS = 2_000_000_000
+"""Most points (or array elements) any reader accepts from a header, whatever the file size."""
+
+MAX_MEMBER_BYTES = 4 * 2**30
+"""Largest uncompressed member of an archive (.npz) that is read, in bytes."""
 
 
 def check_readable(path: Path) -> None:
@@ -15,3 +25,11 @@ def check_readable(path: Path) -> None:
         raise FileFormatError(path, "not a regular file")
     if path.stat().st_size == 0:
         raise FileFormatError(path, "the file is empty")
+
+
+def check_count(path: Path, count: int, what: str, field: str, *, limit: int = MAX_POINTS) -> None:
+    """Raise a :class:`FileFormatError` unless ``0 <= count <= limit``."""
+    if not 0 <= count <= limit:
+        raise FileFormatError(
+            path, f"the header declares {count} {what}, outside 0 to {limit}", field=field
+        )

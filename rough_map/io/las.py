@@ -9,6 +9,7 @@ LAS/LAZ files are written with laspy as integers of 0.1 mm.
 from __future__ import annotations
 
 import logging
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -17,7 +18,7 @@ import numpy as np
 
 from rough_map._files import PathLike
 from rough_map.errors import FileFormatError, InputError
-from rough_map.io._check import check_readable
+from rough_map.io._check import MAX_POINTS, check_readable, short
 
 log = logging.getLogger(__name__)
 
@@ -123,15 +124,34 @@ def read_las(path: PathLike) -> LasCloud:
 
     path = Path(path)
     check_readable(path)
+    check_las_header(path)
     try:
-        with laspy.open(path) as reader:
-            expected = reader.header.point_count
-            las = reader.read()
-        xyz = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])
-        classification = np.asarray(las.classification, dtype=np.uint8)
+        # One thread: the parallel LAZ decoder trusts the chunk table's point counts.
+        single = laspy.LazBackend.Lazrs
+        with laspy.open(path, laz_backend=single if single.is_available() else None) as reader:
+            header = reader.header
+            expected = header.point_count
+            parts, classes = [], []
+            # In chunks: memory follows the points really decoded, not the declared count.
+            for chunk in reader.chunk_iterator(_READ_CHUNK):
+                with np.errstate(over="ignore", invalid="ignore"):  # forged scales: inf
+                    parts.append(np.column_stack([chunk.x, chunk.y, chunk.z]).astype(np.float64))
+                classes.append(np.asarray(chunk.classification, dtype=np.uint8))
+        xyz = np.concatenate(parts) if len(parts) != 1 else parts[0]
+        classification = np.concatenate(classes) if classes else np.zeros(0, np.uint8)
     except _las_errors() as err:
         raise FileFormatError(
-            path, f"not a readable LAS/LAZ file (truncated or corrupt?): {err}"
+            path, f"not a readable LAS/LAZ file (truncated or corrupt?): {short(err)}"
+        ) from err
+    except BaseException as err:
+        if type(err).__name__ != "PanicException":  # a Rust panic in lazrs, not an exit
+            raise
+        raise FileFormatError(
+            path, f"not a readable LAS/LAZ file (the LAZ decoder failed): {short(err)}"
+        ) from err
+    except Exception as err:  # laspy parses hostile VLRs (extra bytes, ...): any failure
+        raise FileFormatError(
+            path, f"not a readable LAS/LAZ file: {type(err).__name__}: {short(err)}"
         ) from err
     if len(xyz) != expected:
         raise FileFormatError(
@@ -139,8 +159,15 @@ def read_las(path: PathLike) -> LasCloud:
         )
     if len(xyz) == 0:
         raise FileFormatError(path, "the file holds no points", field="points")
-    vlrs = list(las.header.vlrs) + list(getattr(las.header, "evlrs", None) or [])
-    crs = _las_crs(path, vlrs)
+    vlrs = list(header.vlrs) + list(getattr(header, "evlrs", None) or [])
+    try:
+        crs = _las_crs(path, vlrs)
+    except FileFormatError:
+        raise
+    except Exception as err:  # hostile GeoTIFF keys or WKT in the VLRs
+        raise FileFormatError(
+            path, f"unreadable CRS record: {type(err).__name__}: {short(err)}", field="crs"
+        ) from err
     if crs is not None and (crs.horizontal_unit_m != 1.0 or crs.vertical_unit_m != 1.0):
         log.info(
             "%s: coordinates in %s converted to m (x, y * %.10g, z * %.10g)",
@@ -151,6 +178,202 @@ def read_las(path: PathLike) -> LasCloud:
         )
         xyz *= np.array([crs.horizontal_unit_m, crs.horizontal_unit_m, crs.vertical_unit_m])
     return LasCloud(points=xyz, classification=classification, crs=crs)
+
+
+# Smallest record of each LAS point data format 0-10, in bytes.
+_RECORD_SIZES = (20, 28, 26, 34, 57, 63, 30, 36, 38, 59, 67)
+_HEADER_SIZES = {0: 227, 1: 227, 2: 227, 3: 235, 4: 375}  # by minor version
+_VLR_HEADER, _EVLR_HEADER = 54, 60
+LAZ_MAX_RATIO = 200
+"""Largest accepted ratio of decompressed point bytes to LAZ data bytes (real airborne lidar:
+about 6; a rough simulated grid: 25; only degenerate clouds, such as a flat regular grid,
+compress more)."""
+_READ_CHUNK = 1_000_000  # points decoded at a time
+
+
+def check_las_header(path: Path) -> None:
+    """Check the public header block of a LAS/LAZ file against the file size before laspy
+    (and the LAZ decoder, which aborts the process on absurd counts) sees it.
+
+    Checked: the signature, header size, offset to the point data, the VLRs (count and
+    lengths), the point format and record length, the point count (LAS: the records fit in
+    the file; LAZ: at most :data:`LAZ_MAX_RATIO` times the file size, and the chunk table),
+    and the EVLRs of LAS 1.4.
+
+    Raises
+    ------
+    FileFormatError
+        The header is corrupt or declares more than the file can hold.
+    """
+    size = path.stat().st_size
+    with path.open("rb") as fh:
+        head = fh.read(375)
+        if head[:4] != b"LASF":
+            raise FileFormatError(path, "not a LAS/LAZ file: no LASF signature", field="header")
+        if len(head) < 227:
+            raise FileFormatError(
+                path, "not a readable LAS/LAZ file (truncated?): header cut short", "header"
+            )
+        major, minor = head[24], head[25]
+        header_size, offset, n_vlrs, fmt_byte, record, legacy = struct.unpack_from(
+            "<HIIBHI", head, 94
+        )
+        if major != 1 or minor not in _HEADER_SIZES:
+            raise FileFormatError(path, f"unsupported LAS version {major}.{minor}", "version")
+        if not _HEADER_SIZES[minor] <= header_size <= offset <= size:
+            raise FileFormatError(
+                path,
+                f"header size {header_size} B and offset to points {offset} B do not fit "
+                f"LAS {major}.{minor} in a file of {size} B",
+                field="header",
+            )
+        count = legacy
+        n_evlrs = first_evlr = 0
+        if minor >= 4:
+            first_evlr, n_evlrs, count64 = struct.unpack_from("<QIQ", head, 235)
+            count = count64 or legacy
+        compressed = bool(fmt_byte & 0x80) and not fmt_byte & 0x40  # as laspy decides
+        fmt = fmt_byte & 0x3F
+        if fmt >= len(_RECORD_SIZES) or not _RECORD_SIZES[fmt] <= record:
+            raise FileFormatError(
+                path, f"point format {fmt} with records of {record} B", field="point_format"
+            )
+        laszip = _check_vlrs(path, fh, header_size, offset, n_vlrs)
+        data = size - offset
+        if compressed:
+            record = max(record, _laszip_item_size(path, laszip))
+            if count > MAX_POINTS or count * record > LAZ_MAX_RATIO * data:
+                raise FileFormatError(
+                    path,
+                    f"the header declares {count} points of {record} B in {data} B of LAZ data "
+                    f"(limit {LAZ_MAX_RATIO}x); corrupt",
+                    field="points",
+                )
+            _check_chunk_table(path, fh, offset, size, count)
+            if laszip is not None and struct.unpack_from("<H", laszip, 0)[0] == _LAYERED:
+                _check_laz_layers(path, fh, offset, size, laszip, count)
+        elif count * record > data:
+            available = data // record
+            if data % record and not n_evlrs:
+                raise FileFormatError(
+                    path,
+                    "not a readable LAS/LAZ file (truncated or corrupt?): the point data ends "
+                    f"inside a record; the header declares {count} points",
+                )
+            raise FileFormatError(
+                path, f"truncated: {available} of the {count} points in the header", "points"
+            )
+        if n_evlrs:
+            _check_evlrs(path, fh, first_evlr, n_evlrs, size)
+
+
+def _check_vlrs(path: Path, fh: Any, start: int, end: int, count: int) -> bytes | None:
+    """The VLRs between the header and the point data: each fits before the points.
+    Returns the data of the LASzip VLR, if there is one."""
+    if count * _VLR_HEADER > end - start:
+        raise FileFormatError(
+            path, f"{count} VLRs cannot fit in {end - start} B before the points", field="vlrs"
+        )
+    pos, laszip = start, None
+    for i in range(count):
+        fh.seek(pos)
+        vlr = fh.read(_VLR_HEADER)
+        length = struct.unpack_from("<H", vlr, 20)[0]
+        if pos + _VLR_HEADER + length > end:
+            raise FileFormatError(path, f"VLR {i} runs past the point data", field="vlrs")
+        if vlr[2:18].rstrip(b"\0") == b"laszip encoded" and laszip is None:
+            laszip = fh.read(length)
+        pos += _VLR_HEADER + length
+    return laszip
+
+
+def _laszip_item_size(path: Path, vlr: bytes | None) -> int:
+    """Bytes per point that the LAZ decoder will allocate, from the LASzip VLR's items."""
+    if vlr is None or len(vlr) < 34:
+        raise FileFormatError(path, "compressed points without a LASzip VLR", field="laszip")
+    n_items = struct.unpack_from("<H", vlr, 32)[0]
+    if n_items == 0:
+        raise FileFormatError(path, "LASzip VLR without items", field="laszip")
+    if 34 + 6 * n_items > len(vlr):
+        raise FileFormatError(path, f"LASzip VLR with {n_items} items is cut short", "laszip")
+    return sum(struct.unpack_from("<H", vlr, 34 + 6 * i + 2)[0] for i in range(n_items))
+
+
+def _check_evlrs(path: Path, fh: Any, start: int, count: int, size: int) -> None:
+    """The EVLRs of LAS 1.4: each one inside the file."""
+    if not 0 < start <= size or count * _EVLR_HEADER > size - start:
+        raise FileFormatError(
+            path, f"{count} EVLRs at {start} B do not fit in {size} B", field="evlrs"
+        )
+    pos = start
+    for i in range(count):
+        if pos + _EVLR_HEADER > size:
+            raise FileFormatError(path, f"EVLR {i} runs past the end of the file", "evlrs")
+        fh.seek(pos + 20)
+        length = struct.unpack("<Q", fh.read(8))[0]
+        pos += _EVLR_HEADER + length
+        if pos > size:
+            raise FileFormatError(path, f"EVLR {i} runs past the end of the file", "evlrs")
+
+
+def _check_chunk_table(path: Path, fh: Any, offset: int, size: int, count: int) -> None:
+    """The LAZ chunk table: where the point data says, with at most one chunk per point."""
+    fh.seek(offset)
+    word = fh.read(8)
+    if len(word) < 8:
+        raise FileFormatError(path, "LAZ data cut short (truncated?)", field="chunk_table")
+    table = struct.unpack("<q", word)[0]
+    if table == -1:
+        return  # written by a streaming encoder without a table: read in order
+    if not offset + 8 <= table <= size - 8:
+        raise FileFormatError(
+            path, f"chunk table at {table} B outside the file of {size} B", field="chunk_table"
+        )
+    fh.seek(table)
+    _, chunks = struct.unpack("<II", fh.read(8))
+    if chunks > count + 1 or chunks > size - offset:
+        raise FileFormatError(
+            path, f"{chunks} chunks declared for {count} points; corrupt", field="chunk_table"
+        )
+
+
+# Layers of each LASzip 1.4 item type (point14, rgb14, rgbnir14, wavepacket14); byte14 has
+# one layer per byte.
+_LAYERS = {10: 9, 11: 1, 12: 2, 13: 1}
+_LAYERED = 3  # LASzip compressor id of the layered chunked compression of LAS 1.4
+_VARIABLE_CHUNKS = 0xFFFFFFFF  # LASzip chunk size of files with chunks of varying sizes
+
+
+def _check_laz_layers(
+    path: Path, fh: Any, offset: int, size: int, laszip: bytes, count: int
+) -> None:
+    """Each chunk of a layered (LAS 1.4) LAZ file declares the byte size of its layers, which
+    the decoder allocates before reading them: walk the chunks as the decoder does (in order,
+    whatever the chunk table says) and check that every chunk fits in the file."""
+    items = [
+        struct.unpack_from("<HHH", laszip, 34 + 6 * i)
+        for i in range(struct.unpack_from("<H", laszip, 32)[0])
+    ]
+    chunk_size = struct.unpack_from("<I", laszip, 12)[0]
+    raw = sum(item_size for _, item_size, _ in items)  # the first point of a chunk, raw
+    layers = sum(item_size if kind == 14 else _LAYERS.get(kind, 0) for kind, item_size, _ in items)
+    start, remaining, k = offset + 8, count, 0
+    while remaining > 0:
+        fh.seek(start + raw)
+        head = fh.read(4 + 4 * layers)
+        if len(head) < 4 + 4 * layers:
+            raise FileFormatError(path, f"LAZ chunk {k} cut short (truncated?)", field="points")
+        in_chunk, *sizes = struct.unpack(f"<I{layers}I", head)
+        start += raw + len(head) + sum(sizes)
+        if start > size:
+            raise FileFormatError(
+                path, f"LAZ chunk {k} declares more bytes than the file holds", field="points"
+            )
+        step = in_chunk if chunk_size == _VARIABLE_CHUNKS else chunk_size
+        if step < 1:
+            raise FileFormatError(path, f"LAZ chunk {k} holds no points; corrupt", "points")
+        remaining -= step
+        k += 1
 
 
 def write_las(path: Path, points: np.ndarray) -> None:

@@ -13,7 +13,8 @@ suffix             content
                    column ``c`` with ``c_scale`` and ``c_offset`` (m) reads as
                    ``c_offset + c_scale * c`` (read only; ``rough-map simulate --compress``)
 .csv .xyz .txt     text, comma/semicolon/whitespace separated, optional header
-.ply .pcd          read and written with open3d
+.ply .pcd          read with numpy (:mod:`rough_map.io.ply_pcd`: open3d's readers can crash
+                   on corrupt files), written with open3d
 .las .laz          read and written with laspy (.laz needs the lazrs backend), see
                    :mod:`rough_map.io.las` for the classification and CRS
 .bin               KITTI velodyne scan: float32 x, y, z, reflectance (read only)
@@ -28,8 +29,6 @@ from __future__ import annotations
 import logging
 import re
 import warnings
-import zipfile
-import zlib
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -37,8 +36,10 @@ import numpy as np
 
 from rough_map._files import PathLike, atomic_output
 from rough_map.errors import FileFormatError, InputError
-from rough_map.io._check import check_readable
+from rough_map.io._check import check_readable, quote, short
 from rough_map.io.las import read_las, write_las
+from rough_map.io.ply_pcd import read_pcd, read_ply
+from rough_map.io.safe_npz import SafeNpz, read_npy
 
 __all__ = [
     "READERS",
@@ -181,64 +182,59 @@ def read_kitti_poses(path: PathLike) -> np.ndarray:
 
 
 def _read_npy(path: Path) -> np.ndarray:
-    try:
-        arr = np.load(path, allow_pickle=False)
-    except (ValueError, EOFError, OSError) as err:
-        raise FileFormatError(path, f"not a readable .npy file (truncated?): {err}") from err
-    if not isinstance(arr, np.ndarray):  # an .npz archive renamed to .npy
-        arr.close()
-        raise FileFormatError(path, "this is an .npz archive, not an .npy array")
-    return arr
+    return read_npy(path)
 
 
 def _read_npz(path: Path) -> np.ndarray:
     """``points`` of an .npz archive, or its columns x, y, z (integers scaled to m)."""
-    try:
-        loaded = np.load(path, allow_pickle=False)
-        if not isinstance(loaded, np.ndarray):
-            with loaded:
-                arrays = {name: loaded[name] for name in loaded.files}
-    except (ValueError, EOFError, OSError, zipfile.BadZipFile, zlib.error) as err:
-        raise FileFormatError(path, f"not a readable .npz archive (truncated?): {err}") from err
-    if isinstance(loaded, np.ndarray):
-        raise FileFormatError(path, "this is an .npy array, not an .npz archive")
-    if "points" in arrays:
-        return arrays["points"]
-    missing = [c for c in "xyz" if c not in arrays]
-    if missing:
-        raise FileFormatError(
-            path,
-            f"an .npz cloud holds 'points' (N x 3) or columns x, y, z; this one holds "
-            f"{sorted(arrays)}",
-            field=missing[0],
-        )
-    columns = []
+    with path.open("rb") as fh:
+        if fh.read(6) == b"\x93NUMPY":
+            raise FileFormatError(path, "this is an .npy array, not an .npz archive")
+    with SafeNpz(path, "a readable .npz archive (truncated?)") as archive:
+        if "points" in archive:
+            return archive.read("points", structured=True)
+        missing = [c for c in "xyz" if c not in archive]
+        if missing:
+            raise FileFormatError(
+                path,
+                f"an .npz cloud holds 'points' (N x 3) or columns x, y, z; this one holds "
+                f"{quote(sorted(archive.files), 80)}",
+                field=missing[0],
+            )
+        keys = [k for c in "xyz" for k in (c, f"{c}_scale", f"{c}_offset") if k in archive]
+        arrays = {key: archive.read(key) for key in keys}
     for c in "xyz":
         col = arrays[c]
         if col.ndim != 1 or col.dtype.kind not in "fiu":
             raise FileFormatError(
                 path,
-                f"expected a 1-D numeric column; got shape {col.shape}, dtype {col.dtype}",
+                f"expected a 1-D numeric column; got shape {short(col.shape, 40)}, "
+                f"dtype {short(col.dtype, 40)}",
                 field=c,
             )
-        col = col.astype(np.float64)
         for key in (f"{c}_scale", f"{c}_offset"):
             value = arrays.get(key)
             if value is not None and (value.ndim != 0 or value.dtype.kind not in "fiu"):
                 raise FileFormatError(
-                    path, f"expected a number in m; got shape {value.shape}", field=key
+                    path, f"expected a number in m; got shape {short(value.shape, 40)}", field=key
                 )
-        if f"{c}_scale" in arrays:
-            col *= float(arrays[f"{c}_scale"])
-        if f"{c}_offset" in arrays:
-            col += float(arrays[f"{c}_offset"])
-        columns.append(col)
-    if len({len(col) for col in columns}) > 1:
-        lengths = ", ".join(f"{c} {len(col)}" for c, col in zip("xyz", columns, strict=True))
+    if len({len(arrays[c]) for c in "xyz"}) > 1:
+        lengths = ", ".join(f"{c} {len(arrays[c])}" for c in "xyz")
         raise FileFormatError(path, f"columns of different lengths: {lengths}", field="shape")
-    return np.column_stack(columns)
+    # Filled column by column: no temporary float64 copy of the whole cloud.
+    xyz = np.empty((len(arrays["x"]), 3), dtype=np.float64)
+    with np.errstate(over="ignore", invalid="ignore"):  # non-finite rows are dropped later
+        for k, c in enumerate("xyz"):
+            xyz[:, k] = arrays[c]
+            if f"{c}_scale" in arrays:
+                xyz[:, k] *= float(arrays[f"{c}_scale"])
+            if f"{c}_offset" in arrays:
+                xyz[:, k] += float(arrays[f"{c}_offset"])
+    return xyz
 
 
+_MAX_LINE = 65536
+"""Longest first line of a text cloud that is looked at for a header, in characters."""
 _NUMBER = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$|^[+-]?(nan|inf|infinity)$", re.I)
 _LOADTXT_WHERE = re.compile(
     r"could not convert string (?P<value>.*) to \w+ at row (?P<row>\d+), column (?P<column>\d+)"
@@ -249,10 +245,15 @@ def _read_text(path: Path) -> np.ndarray:
     """x, y, z from a delimited text file; a header naming x, y, z picks those columns."""
     first, line_no = "", 0
     with path.open("r", encoding="utf-8", errors="replace") as fh:
-        for line_no, line in enumerate(fh):  # noqa: B007 - line_no is used after the loop
+        while line := fh.readline(_MAX_LINE):
+            if len(line) >= _MAX_LINE and not line.endswith("\n"):
+                raise FileFormatError(
+                    path, f"line {line_no + 1} is longer than {_MAX_LINE} characters", "text"
+                )
             if line.strip() and not line.lstrip().startswith("#"):
                 first = line.strip()
                 break
+            line_no += 1
     delimiter = "," if "," in first else ";" if ";" in first else None
     tokens = [t.strip().strip("\"'") for t in first.split(delimiter)]
     has_header = not all(_NUMBER.match(t) for t in tokens if t)
@@ -285,12 +286,15 @@ def _loadtxt(
     except ValueError as err:  # includes UnicodeDecodeError
         where = _LOADTXT_WHERE.search(str(err))
         if where is None:
-            raise FileFormatError(path, f"not a table of numbers: {err}", field="text") from err
+            raise FileFormatError(
+                path, f"not a table of numbers: {short(err)}", field="text"
+            ) from err
         # numpy counts data rows from 0 (after header, comments, blank lines), columns from 1.
         row, column = int(where["row"]) + 1, int(where["column"])
         raise FileFormatError(
             path,
-            f"not a table of numbers: {where['value']!r} in data row {row}, column {column}",
+            f"not a table of numbers: {quote(where['value'], 40)} in data row {row}, "
+            f"column {column}",
             field=f"row {row}, column {column}",
         ) from err
 
@@ -299,96 +303,6 @@ def _open3d_path(path: Path) -> Any:
     """``path`` as open3d takes it: a str (open3d 0.18 takes only str; later stubs say
     ``os.PathLike``, which a str also is at run time)."""
     return str(path)
-
-
-def _read_open3d(path: Path) -> np.ndarray:
-    import open3d as o3d
-
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        cloud = o3d.t.io.read_point_cloud(_open3d_path(path))
-    if "positions" not in cloud.point:
-        raise FileFormatError(
-            path, "open3d read no point positions (corrupt, truncated or empty file)", "positions"
-        )
-    positions = cloud.point.positions.numpy()
-    check = _ply_truncation if path.suffix.lower() == ".ply" else _pcd_truncation
-    if problem := check(path):
-        # open3d only warns on some truncated files and returns garbage for the missing points.
-        raise FileFormatError(path, problem, field="points")
-    return positions
-
-
-_PLY_TYPE_SIZES = {
-    **dict.fromkeys([b"char", b"uchar", b"int8", b"uint8"], 1),
-    **dict.fromkeys([b"short", b"ushort", b"int16", b"uint16"], 2),
-    **dict.fromkeys([b"int", b"uint", b"int32", b"uint32", b"float", b"float32"], 4),
-    **dict.fromkeys([b"double", b"float64"], 8),
-}
-
-
-def _ply_truncation(path: Path) -> str | None:
-    """Why a PLY file is shorter than its header says, or None if it is not (or unknown)."""
-    elements: list[list] = []  # [count, row size in bytes or None if it has list properties]
-    binary = True
-    with path.open("rb") as fh:
-        for line in fh:
-            words = line.split()
-            if words[:1] == [b"format"]:
-                binary = words[1:2] != [b"ascii"]
-            elif words[:1] == [b"element"] and len(words) == 3 and words[2].isdigit():
-                elements.append([int(words[2]), 0])
-            elif words[:1] == [b"property"] and elements and elements[-1][1] is not None:
-                size = _PLY_TYPE_SIZES.get(words[1]) if len(words) == 3 else None
-                elements[-1][1] = None if size is None else elements[-1][1] + size
-            elif words[:1] == [b"end_header"]:
-                break
-        else:
-            return "no end_header line"
-        data = fh.read()
-    if binary:
-        # Only the leading elements made of fixed-size properties have a known size.
-        needed = 0
-        for count, row in elements:
-            if row is None:
-                break
-            needed += count * row
-        short = len(data) < needed
-    else:
-        short = _count_lines(data) < sum(count for count, _ in elements)
-    return _SHORT if short else None
-
-
-def _pcd_truncation(path: Path) -> str | None:
-    """Why a PCD file is shorter than its header says, or None if it is not (or unknown)."""
-    header: dict[bytes, list[bytes]] = {}
-    with path.open("rb") as fh:
-        for line in fh:
-            words = line.split()
-            if words and not words[0].startswith(b"#"):
-                header[words[0].upper()] = words[1:]
-            if words[:1] == [b"DATA"]:
-                break
-        else:
-            return "no DATA line"
-        data = fh.read()
-    try:
-        points = int(header[b"POINTS"][0])
-        row = sum(int(s) * int(c) for s, c in zip(header[b"SIZE"], header[b"COUNT"], strict=True))
-    except (KeyError, IndexError, ValueError):
-        return None  # open3d judges headers
-    kind = header[b"DATA"][:1]
-    if kind == [b"ascii"]:
-        return _SHORT if _count_lines(data) < points else None
-    if kind == [b"binary"]:
-        return _SHORT if len(data) < points * row else None
-    return None  # binary_compressed: open3d fails on its own
-
-
-_SHORT = "truncated: the file is shorter than its header declares"
-
-
-def _count_lines(data: bytes) -> int:
-    return sum(1 for line in data.splitlines() if line.strip())
 
 
 def _read_las_xyz(path: Path) -> np.ndarray:
@@ -429,7 +343,8 @@ def _finite_xyz(path: Path, arr: np.ndarray) -> np.ndarray:
     if arr.shape[0] == 0:
         raise FileFormatError(path, "the file holds no points", field="points")
     # A fresh (N, 3) float64 array from a reader is kept as it is; anything else is copied.
-    xyz = np.ascontiguousarray(arr[:, :3], dtype=np.float64)
+    with np.errstate(invalid="ignore"):  # a signalling NaN in float32 warns when widened
+        xyz = np.ascontiguousarray(arr[:, :3], dtype=np.float64)
     # One cheap pass: the sum of all coordinates is NaN or infinite whenever one of them is
     # (and, rarely, when finite ones overflow); only then is the row mask built.
     with np.errstate(over="ignore", invalid="ignore"):
@@ -475,8 +390,8 @@ READERS: dict[str, CloudReader] = {
     ".csv": _read_text,
     ".xyz": _read_text,
     ".txt": _read_text,
-    ".ply": _read_open3d,
-    ".pcd": _read_open3d,
+    ".ply": read_ply,
+    ".pcd": read_pcd,
     ".las": _read_las_xyz,
     ".laz": _read_las_xyz,
     ".bin": _read_kitti_bin,

@@ -3,7 +3,9 @@
 A traverse is a run of a vehicle over terrain: a list of frames, each with a time (s), the
 vehicle pose in the world frame (m, rad) and a point cloud in the vehicle frame and/or a
 stereo pair. The schema is :class:`rough_map.config.TraverseSpec` (published as
-``data_schema/traverse.schema.json``). Paths in the file are relative to its folder.
+``data_schema/traverse.schema.json``). Paths in the file are relative to its folder and,
+symbolic links followed, must stay inside it (or inside a folder given as ``allow_outside``,
+the CLI's ``--allow-outside DIR``): :meth:`Traverse.resolve` checks every one.
 
 >>> traverse = load_traverse("runs/field_a")          # doctest: +SKIP
 >>> points = traverse.load_cloud(0, frame="world")     # doctest: +SKIP
@@ -13,12 +15,14 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
+from rough_map._bounded import clip, short
 from rough_map._files import PathLike, atomic_output
 from rough_map.config import FrameSpec, TraverseSpec, load_model
 from rough_map.errors import FileFormatError, SchemaError
@@ -43,17 +47,29 @@ class Traverse:
         Folder of the traverse file; relative paths are resolved against it.
     source : Path
         The traverse file (``root / "traverse.json"`` for one not yet saved); named in errors.
+    allow_outside : tuple of Path
+        Folders outside ``root`` whose files the traverse may name (see :meth:`resolve`);
+        it travels with the object to worker processes.
     """
 
     spec: TraverseSpec
     root: Path
     source: Path
+    allow_outside: tuple[Path, ...] = ()
 
     @classmethod
-    def from_spec(cls, spec: TraverseSpec, root: PathLike) -> Traverse:
-        """Wrap an in-memory spec whose paths are relative to ``root``."""
+    def from_spec(
+        cls, spec: TraverseSpec, root: PathLike, *, allow_outside: Iterable[PathLike] = ()
+    ) -> Traverse:
+        """Wrap an in-memory spec whose paths are relative to ``root`` (``allow_outside``
+        as :func:`load_traverse`'s)."""
         root = Path(root)
-        return cls(spec=spec, root=root, source=root / TRAVERSE_FILES[0])
+        return cls(
+            spec=spec,
+            root=root,
+            source=root / TRAVERSE_FILES[0],
+            allow_outside=_allowed(allow_outside),
+        )
 
     @property
     def name(self) -> str:
@@ -82,9 +98,56 @@ class Traverse:
         """Terrain class name of each frame (None where unlabelled)."""
         return [f.label for f in self.spec.frames]
 
-    def resolve(self, relative: str) -> Path:
-        """Where a path written in the traverse file points: ``root / relative``."""
-        return self.root / relative
+    def resolve(self, relative: str, field: str = "path") -> Path:
+        """Where a path written in the traverse file points: ``root / relative`` with its
+        symbolic links followed.
+
+        This is the one place that checks containment: every file a traverse names must
+        resolve inside the traverse folder (itself resolved), or inside one of the folders
+        of ``allow_outside`` (``rough-map ... --allow-outside DIR``).
+
+        Parameters
+        ----------
+        relative : str
+            The path as written in the traverse file.
+        field : str
+            Its field, named in errors (``frames[3].cloud``, ``height_field``).
+
+        Returns
+        -------
+        Path
+            The real path of the file (which may not exist).
+
+        Raises
+        ------
+        SchemaError
+            The path cannot be resolved (too long, a loop of links) or resolves outside the
+            allowed folders; the message names the field.
+        """
+        try:
+            real = (self.root / relative).resolve()
+            allowed = [self.root.resolve(), *(Path(p).resolve() for p in self.allow_outside)]
+        except (OSError, RuntimeError, ValueError) as err:
+            reason = getattr(err, "strerror", None) or str(err)
+            raise self._error(
+                field, f"{short(relative, 50)} cannot be resolved: {clip(reason, 50)}"
+            ) from None
+        if not any(real.is_relative_to(folder) for folder in allowed):
+            raise self._error(
+                field,
+                f"{short(relative, 50)} resolves outside the traverse folder "
+                "(pass --allow-outside DIR to allow)",
+            )
+        return real
+
+    def _is_file(self, path: Path, field: str, relative: str) -> bool:
+        try:
+            return path.is_file()
+        except OSError as err:  # a name too long, no permission...
+            reason = err.strerror or str(err)
+            raise self._error(
+                field, f"{short(relative, 50)} cannot be read: {clip(reason, 50)}"
+            ) from None
 
     def pose_matrix(self, index: int) -> np.ndarray:
         """4x4 transform vehicle -> world of frame ``index`` (m)."""
@@ -101,9 +164,10 @@ class Traverse:
         frame = self._frame(index)
         if frame.cloud is None:
             raise self._error(f"frames[{index}].cloud", "this frame has no point cloud")
-        path = self.resolve(frame.cloud)
-        if not path.is_file():
-            raise self._error(f"frames[{index}].cloud", f"{frame.cloud} does not exist")
+        where = f"frames[{index}].cloud"
+        path = self.resolve(frame.cloud, where)
+        if not self._is_file(path, where, frame.cloud):
+            raise self._error(where, f"{clip(frame.cloud, 60)} does not exist")
         return path
 
     def load_cloud(self, index: int, frame: Literal["vehicle", "world"] = "vehicle") -> np.ndarray:
@@ -143,7 +207,9 @@ class Traverse:
         Raises
         ------
         SchemaError
-            Naming the first missing files by their field (``frames[3].cloud``) and path.
+            Naming the first missing files by their field (``frames[3].cloud``) and path,
+            or the first path that resolves outside the traverse folder (see
+            :meth:`resolve`).
         """
         missing: list[tuple[str, str]] = []
         if self.spec.height_field is not None:
@@ -154,14 +220,17 @@ class Traverse:
                 if relative is not None:
                     missing += self._missing(f"frames[{i}].{key}", relative)
         if missing:
-            shown = "; ".join(f"{where}: {rel} does not exist" for where, rel in missing[:3])
-            more = f" (and {len(missing) - 3} more missing files)" if len(missing) > 3 else ""
+            shown = "; ".join(
+                f"{where}: {clip(rel, 40)} does not exist" for where, rel in missing[:2]
+            )
+            more = f" (and {len(missing) - 2} more missing files)" if len(missing) > 2 else ""
             error = SchemaError(self.source, shown + more)
             error.field = missing[0][0]
             raise error
 
     def _missing(self, where: str, relative: str) -> list[tuple[str, str]]:
-        return [] if self.resolve(relative).is_file() else [(where, relative)]
+        path = self.resolve(relative, where)
+        return [] if self._is_file(path, where, relative) else [(where, relative)]
 
     def _frame(self, index: int) -> FrameSpec:
         try:
@@ -186,11 +255,14 @@ def find_traverse_file(dir_or_file: PathLike) -> Path:
         Nothing there, no traverse file in the folder, or more than one.
     """
     path = Path(dir_or_file)
-    if path.is_file():
-        return path
-    if not path.exists():
-        raise FileFormatError(path, "no such file or folder")
-    found = [path / n for n in TRAVERSE_FILES if (path / n).is_file()]
+    try:
+        if path.is_file():
+            return path
+        if not path.exists():
+            raise FileFormatError(path, "no such file or folder")
+        found = [path / n for n in TRAVERSE_FILES if (path / n).is_file()]
+    except OSError as err:  # a name too long, no permission
+        raise FileFormatError(path, f"cannot read: {clip(str(err.strerror or err), 60)}") from None
     if not found:
         raise FileFormatError(path, f"not a traverse folder: none of {', '.join(TRAVERSE_FILES)}")
     if len(found) > 1:
@@ -199,17 +271,22 @@ def find_traverse_file(dir_or_file: PathLike) -> Path:
     return found[0]
 
 
-def load_traverse(dir_or_file: PathLike) -> Traverse:
+def load_traverse(dir_or_file: PathLike, *, allow_outside: Iterable[PathLike] = ()) -> Traverse:
     """Load and validate a traverse.
 
     Only the traverse file is read; the files it names are checked when used, or all at
-    once by :meth:`Traverse.validate_files`.
+    once by :meth:`Traverse.validate_files`. Every one of them must resolve (symbolic links
+    followed) inside the traverse folder, or inside a folder of ``allow_outside``: a
+    traverse file cannot make rough_map read ``../../elsewhere`` unless the user allows it.
 
     Parameters
     ----------
     dir_or_file : str or PathLike
         A traverse folder (holding one of ``traverse.json``, ``traverse.yaml``,
         ``traverse.yml``) or the traverse file itself.
+    allow_outside : iterable of str or PathLike
+        Folders outside the traverse folder whose files the traverse may name (the CLI's
+        ``--allow-outside DIR``); default none.
 
     Returns
     -------
@@ -226,7 +303,15 @@ def load_traverse(dir_or_file: PathLike) -> Traverse:
     source = find_traverse_file(dir_or_file)
     spec = load_model(source, TraverseSpec)
     log.debug("loaded %s: %d frames", source, len(spec.frames))
-    return Traverse(spec=spec, root=source.parent, source=source)
+    return Traverse(
+        spec=spec, root=source.parent, source=source, allow_outside=_allowed(allow_outside)
+    )
+
+
+def _allowed(folders: Iterable[PathLike]) -> tuple[Path, ...]:
+    if isinstance(folders, str | Path):
+        folders = [folders]
+    return tuple(Path(f) for f in folders)
 
 
 def save_traverse(traverse: Traverse | TraverseSpec, out_dir: PathLike) -> Path:

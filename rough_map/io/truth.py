@@ -40,8 +40,10 @@ from typing import Any, TypeAlias
 
 import numpy as np
 
+from rough_map._bounded import clip
 from rough_map._files import PathLike, atomic_output
 from rough_map.errors import FileFormatError, InputError
+from rough_map.io.safe_npz import ZIP_ERRORS, SafeNpz
 from rough_map.io.traverse import Traverse
 from rough_map.types import HeightField
 
@@ -71,7 +73,7 @@ TILE_COLUMNS = 4096
 
 _ROWS_BLOCK = 2**21  # cells converted at a time: small temporaries
 
-_READ_ERRORS = (OSError, ValueError, KeyError, AttributeError, IndexError, zipfile.BadZipFile)
+_MAX_SIDE_CELLS = 2**31 - 1  # rows or columns of a world
 
 
 def save_world(world: HeightField, path: PathLike) -> None:
@@ -160,34 +162,69 @@ def load_world(path: PathLike) -> HeightField:
     path = Path(path)
     if _is_tiled(path):
         return TiledWorld(path).load()
-    try:
-        with np.load(path, allow_pickle=False) as d:
-            stored = d["heights"]
-            if "height_scale" in d.files:
-                heights = _dequantize(stored, float(d["height_scale"]), float(d["height_offset"]))
-            else:
-                heights = stored.astype(np.float32, copy=False)
-            del stored
-            classes = d["classes"]
-            x0, y0 = (float(v) for v in d["origin"])
-            return HeightField(
-                heights,
-                float(d["spacing"]),
-                (x0, y0),
-                _class_map(classes) if classes.size else None,
-                tuple(str(c) for c in d["class_names"]),
-            )
-    except _READ_ERRORS as exc:
-        raise FileFormatError(path, f"not a rough_map world file: {exc}") from None
+    with SafeNpz(path, _WHAT) as d:
+        stored = d.read("heights", kinds="iuf", ndim=2)
+        if stored.shape[0] < 1 or stored.shape[1] < 1:
+            raise d.error("heights", f"expected at least one cell, got shape {stored.shape}")
+        if "height_scale" in d:
+            scale = _scalar(d, "height_scale")
+            offset = _scalar(d, "height_offset")
+            heights = _dequantize(stored, scale, offset)
+        else:
+            heights = stored.astype(np.float32, copy=False)
+        del stored
+        classes = d.read("classes", kinds="iu", ndim=(1, 2), max_bytes=heights.size * 8)
+        spacing, origin, names = _geometry(d)
+    if classes.size and classes.shape != heights.shape:
+        raise FileFormatError(
+            path, f"shape {classes.shape} differs from the heights' {heights.shape}", "classes"
+        )
+    class_map = _class_map(classes, len(names), path) if classes.size else None
+    return HeightField(heights, spacing, origin, class_map, names)
 
 
-def _class_map(classes: np.ndarray) -> np.ndarray:
-    """A stored class map as int8 (as written) or, for other integers, int64."""
-    if classes.dtype == np.int8:
-        return classes
+_WHAT = "a rough_map world file"
+
+
+def _scalar(d: SafeNpz, name: str, positive: bool = False) -> float:
+    """A finite float member (of one value)."""
+    value = d.read(name, kinds="iuf", max_bytes=64)
+    if value.size != 1 or not np.isfinite(value).all() or (positive and not value.item() > 0):
+        kind = "a positive" if positive else "a finite"
+        raise d.error(name, f"expected {kind} number, got {clip(str(value.tolist()), 40)}")
+    return float(value.item())
+
+
+def _geometry(d: SafeNpz) -> tuple[float, tuple[float, float], tuple[str, ...]]:
+    """``spacing`` (m), ``origin`` (m) and ``class_names`` of a world file, checked."""
+    spacing = _scalar(d, "spacing", positive=True)
+    origin = d.read("origin", kinds="iuf", max_bytes=64)
+    if origin.size != 2 or not np.isfinite(origin).all():
+        raise d.error("origin", f"expected 2 finite numbers, got {clip(str(origin.tolist()), 40)}")
+    names = d.read("class_names", kinds="U", ndim=1, max_bytes=_MAX_CLASS_NAMES * 400)
+    if len(names) > _MAX_CLASS_NAMES:
+        raise d.error("class_names", f"{len(names)} names (most {_MAX_CLASS_NAMES})")
+    x0, y0 = (float(v) for v in origin.ravel())
+    return spacing, (x0, y0), tuple(str(c) for c in names)
+
+
+#: Most class names of a world file (its class map is int8).
+_MAX_CLASS_NAMES = 127
+
+
+def _class_map(classes: np.ndarray, n_names: int, path: Path) -> np.ndarray:
+    """A stored class map as int8 (as written) or, for other integers, int64; every value
+    is -1 (none) or an index into the ``n_names`` class names."""
     if classes.dtype.kind not in "iu":
-        raise ValueError(f"the class map must hold integers, not {classes.dtype}")
-    return classes.astype(np.int64)
+        raise FileFormatError(path, f"must hold integers, not {classes.dtype}", "classes")
+    if classes.size and (int(classes.min()) < -1 or int(classes.max()) >= n_names):
+        raise FileFormatError(
+            path,
+            f"values {int(classes.min())}..{int(classes.max())} are not -1 or an index into "
+            f"the {n_names} class_names",
+            "classes",
+        )
+    return classes if classes.dtype == np.int8 else classes.astype(np.int64)
 
 
 def _is_tiled(path: Path) -> bool:
@@ -195,7 +232,7 @@ def _is_tiled(path: Path) -> bool:
     try:
         with zipfile.ZipFile(path) as zf:
             return "tile_columns.npy" in zf.namelist()
-    except (OSError, zipfile.BadZipFile):
+    except ZIP_ERRORS:
         return False
 
 
@@ -230,19 +267,26 @@ class TiledWorld:
 
     def __init__(self, path: PathLike) -> None:
         self.path = Path(path)
-        try:
-            with np.load(self.path, allow_pickle=False) as d:
-                self.shape = (int(d["shape"][0]), int(d["shape"][1]))
-                self.spacing = float(d["spacing"])
-                x0, y0 = (float(v) for v in d["origin"])
-                self.origin = (x0, y0)
-                self.class_names = tuple(str(c) for c in d["class_names"])
-                self.tile_columns = np.asarray(d["tile_columns"], dtype=np.int64)
-                self._scale = np.asarray(d["height_scale"], dtype=np.float64)
-                self._offset = np.asarray(d["height_offset"], dtype=np.float64)
-                self._finite = np.asarray(d["finite"], dtype=bool)
-        except _READ_ERRORS as exc:
-            raise FileFormatError(self.path, f"not a rough_map tiled world file: {exc}") from None
+        with SafeNpz(self.path, "a rough_map tiled world file") as d:
+            shape = d.read("shape", kinds="iu", ndim=1, max_bytes=64)
+            if shape.size != 2 or shape.min() < 1 or shape.max() > _MAX_SIDE_CELLS:
+                raise d.error(
+                    "shape",
+                    f"expected 2 sizes of 1..2**31-1 cells, got {clip(str(shape.tolist()), 40)}",
+                )
+            self.shape = (int(shape[0]), int(shape[1]))
+            self.spacing, self.origin, self.class_names = _geometry(d)
+            n_max = 8 * (self.shape[1] + 2)
+            self.tile_columns = d.read("tile_columns", kinds="iu", ndim=1, max_bytes=n_max).astype(
+                np.int64
+            )
+            self._scale = d.read("height_scale", kinds="f", ndim=1, max_bytes=n_max).astype(
+                np.float64
+            )
+            self._offset = d.read("height_offset", kinds="f", ndim=1, max_bytes=n_max).astype(
+                np.float64
+            )
+            self._finite = d.read("finite", kinds="biu", ndim=1, max_bytes=n_max).astype(bool)
         edges = self.tile_columns
         n = len(edges) - 1
         if (
@@ -251,12 +295,15 @@ class TiledWorld:
             or edges[-1] != self.shape[1]
             or np.any(np.diff(edges) <= 0)
             or not len(self._scale) == len(self._offset) == len(self._finite) == n
+            or np.any(np.isinf(self._scale))
+            or np.any(~np.isfinite(self._offset[~np.isnan(self._scale)]))
         ):
             raise FileFormatError(
                 self.path,
-                f"tile_columns: expected increasing columns from 0 to {self.shape[1]} and one "
-                f"scale, offset and finite flag per tile; got {edges.tolist()[:5]}... and "
-                f"{len(self._scale)}, {len(self._offset)}, {len(self._finite)}",
+                f"expected increasing columns from 0 to {self.shape[1]} and one finite "
+                f"scale, offset and finite flag per tile; got {clip(str(edges.tolist()[:4]), 40)} "
+                f"and {len(self._scale)}, {len(self._offset)}, {len(self._finite)}",
+                "tile_columns",
             )
         self._cache: OrderedDict[tuple[str, int], np.ndarray] = OrderedDict()
 
@@ -264,20 +311,18 @@ class TiledWorld:
     def n_tiles(self) -> int:
         return len(self.tile_columns) - 1
 
-    def _member(self, name: str) -> np.ndarray:
-        try:
-            with np.load(self.path, allow_pickle=False) as d:
-                return np.asarray(d[name])
-        except _READ_ERRORS as exc:
-            raise FileFormatError(self.path, f"{name}: cannot read: {exc}") from None
+    def _member(self, name: str, kinds: str, max_bytes: int) -> np.ndarray:
+        with SafeNpz(self.path, "a rough_map tiled world file") as d:
+            return d.read(name, kinds=kinds, ndim=2, max_bytes=max_bytes)
 
     def _cached(self, kind: str, k: int) -> np.ndarray:
         key = (kind, k)
         if key in self._cache:
             self._cache.move_to_end(key)
             return self._cache[key]
-        stored = self._member(f"{kind}_{k:05d}")
         n = int(self.tile_columns[k + 1] - self.tile_columns[k])
+        kinds = "iuf" if kind == "heights" else "iu"
+        stored = self._member(f"{kind}_{k:05d}", kinds, self.shape[0] * n * 8)
         if stored.shape != (self.shape[0], n):
             raise FileFormatError(
                 self.path,
@@ -289,7 +334,7 @@ class TiledWorld:
             else:
                 array = _dequantize(stored, float(self._scale[k]), float(self._offset[k]))
         else:
-            array = stored.astype(np.int8, copy=False)
+            array = _class_map(stored, len(self.class_names), self.path).astype(np.int8, copy=False)
         self._cache[key] = array
         if sum(kk == kind for kk, _ in self._cache) > self.CACHE:
             oldest = next(key for key in self._cache if key[0] == kind)
@@ -399,8 +444,12 @@ def traverse_truth(traverse: Traverse) -> World | None:
     """
     if traverse.spec.height_field is None:
         return None
-    path = traverse.resolve(traverse.spec.height_field)
-    return open_world(path) if path.is_file() else None
+    path = traverse.resolve(traverse.spec.height_field, "height_field")
+    try:
+        there = path.is_file()
+    except OSError:  # a name too long
+        there = False
+    return open_world(path) if there else None
 
 
 class TiledWorldWriter:

@@ -25,6 +25,7 @@ in the traverse's CRS, names in the band-1 tags.
 from __future__ import annotations
 
 import csv
+import io
 import json
 import logging
 import re
@@ -35,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from rough_map._bounded import clip, parse_document, parse_json, read_document_text
 from rough_map._files import PathLike, atomic_output
 from rough_map.errors import FileFormatError, InputError
 from rough_map.io.truth import TiledWorld, World
@@ -70,16 +72,34 @@ def _sidecars(path: Path) -> list[Path]:
     return [stem.with_name(f"{stem.name}.classes.json"), stem.with_name(f"{stem.name}.classes.csv")]
 
 
+#: Most class names of a truth raster, and the largest class value (absolute).
+_MAX_NAMES = 65_536
+_MAX_VALUE = 2**31 - 1
+
+
+def _checked(names: dict[int, str], path: Path, field: str) -> dict[int, str]:
+    """``names`` if their number and values are sane, else a FileFormatError."""
+    if len(names) > _MAX_NAMES:
+        raise FileFormatError(path, f"{len(names)} class names (most {_MAX_NAMES})", field)
+    if names and max(abs(v) for v in names) > _MAX_VALUE:
+        raise FileFormatError(path, f"class values must be within +-{_MAX_VALUE}", field)
+    return names
+
+
+def _int_key(key: object) -> int:
+    text = str(key).strip()
+    if not re.fullmatch(r"[+-]?\d{1,10}", text):
+        raise ValueError(key)
+    return int(text)
+
+
 def _from_json_sidecar(path: Path) -> dict[int, str]:
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
-        raise FileFormatError(path, f"not a JSON class-name file: {exc}") from None
+    data = parse_document(path, kind="json")
     if isinstance(data, list):
-        return {i: str(n) for i, n in enumerate(data)}
+        return _checked({i: str(n) for i, n in enumerate(data)}, path, "names")
     if isinstance(data, dict):
         try:
-            return {int(k): str(v) for k, v in data.items()}
+            return _checked({_int_key(k): str(v) for k, v in data.items()}, path, "keys")
         except ValueError:
             raise FileFormatError(path, "keys must be integer class values", "keys") from None
     raise FileFormatError(path, "expected a list of names or an object {value: name}")
@@ -87,30 +107,28 @@ def _from_json_sidecar(path: Path) -> dict[int, str]:
 
 def _from_csv_sidecar(path: Path) -> dict[int, str]:
     try:
-        with path.open(newline="", encoding="utf-8") as fh:
-            rows = list(csv.DictReader(fh))
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise FileFormatError(path, f"cannot read: {exc}") from None
+        text = read_document_text(path)
+        rows = list(csv.DictReader(io.StringIO(text, newline="")))
+    except csv.Error as exc:
+        raise FileFormatError(path, f"cannot read: {clip(str(exc), 80)}") from None
     if not rows or not {"value", "name"} <= set(rows[0]):
         raise FileFormatError(path, "expected the columns value,name", "value,name")
     try:
-        return {int(r["value"]): str(r["name"]) for r in rows}
+        return _checked({_int_key(r["value"]): str(r["name"]) for r in rows}, path, "value")
     except (TypeError, ValueError):
         raise FileFormatError(path, "values must be integers", "value") from None
 
 
 def _from_tags(tags: Mapping[str, str], path: Path) -> dict[int, str]:
-    names = {int(k[6:]): v for k, v in tags.items() if re.fullmatch(r"CLASS_\d+", k, re.IGNORECASE)}
+    pattern = r"CLASS_\d{1,10}"
+    names = {int(k[6:]): v for k, v in tags.items() if re.fullmatch(pattern, k, re.IGNORECASE)}
     if names:
-        return names
+        return _checked(names, path, "CLASS_<value>")
     if "class_names" in tags:
-        try:
-            listed = json.loads(tags["class_names"])
-        except ValueError:
-            raise FileFormatError(path, "not a JSON list", "class_names") from None
+        listed = parse_json(str(tags["class_names"]), path)
         if not isinstance(listed, list):
             raise FileFormatError(path, "not a JSON list", "class_names")
-        return {i: str(n) for i, n in enumerate(listed)}
+        return _checked({i: str(n) for i, n in enumerate(listed)}, path, "class_names")
     return {}
 
 
@@ -119,14 +137,17 @@ def _from_aux_xml(path: Path) -> dict[int, str]:
     if not aux.is_file():
         return {}
     try:
-        root = ET.parse(aux).getroot()
-    except (OSError, ET.ParseError) as exc:
-        raise FileFormatError(aux, f"not GDAL PAM XML: {exc}") from None
+        root = ET.fromstring(read_document_text(aux))
+    except ET.ParseError as exc:
+        raise FileFormatError(aux, f"not GDAL PAM XML: {clip(str(exc), 80)}") from None
+    except RecursionError:
+        raise FileFormatError(aux, "not GDAL PAM XML: nested too deeply") from None
     band = root.find("PAMRasterBand[@band='1']")
     cats = None if band is None else band.find("CategoryNames")
     if cats is None:
         return {}
-    return {i: (c.text or "") for i, c in enumerate(cats.findall("Category")) if c.text}
+    names = {i: (c.text or "") for i, c in enumerate(cats.findall("Category")) if c.text}
+    return _checked(names, aux, "CategoryNames")
 
 
 def read_class_names(path: PathLike, dataset: Any = None) -> dict[int, str]:
@@ -152,9 +173,14 @@ def read_class_names(path: PathLike, dataset: Any = None) -> dict[int, str]:
         return _from_csv_sidecar(csv_side)
     if dataset is None:
         import rasterio
+        from rasterio._err import CPLE_BaseError
+        from rasterio.errors import RasterioError
 
-        with rasterio.open(path) as ds:
-            return read_class_names(path, ds)
+        try:
+            with rasterio.open(path) as ds:
+                return read_class_names(path, ds)
+        except (RasterioError, CPLE_BaseError) as exc:
+            raise FileFormatError(path, f"not a readable raster: {clip(str(exc), 80)}") from None
     names = _from_tags(dataset.tags(1), path) or _from_tags(dataset.tags(), path)
     names = names or _from_aux_xml(path)
     if not names:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import zipfile
+import zlib
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
@@ -22,8 +23,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from rough_map._bounded import MAX_DOCUMENT_BYTES, clip, parse_json
 from rough_map._files import PathLike, atomic_output
 from rough_map.errors import FileFormatError
+from rough_map.io.safe_npz import SafeNpz
 from rough_map.map.grid import GridMap
 
 __all__ = [
@@ -96,9 +99,24 @@ def read_state_meta(path: PathLike) -> dict[str, Any]:
     path = Path(path)
     try:
         with zipfile.ZipFile(path) as zf:
-            meta = json.loads(zf.read("meta.json"))
-    except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
-        raise FileFormatError(path, f"not a readable map state: {exc}") from None
+            info = zf.getinfo("meta.json")
+            if info.file_size > min(MAX_DOCUMENT_BYTES, info.compress_size * 1100 + 1024):
+                raise FileFormatError(path, "meta.json declares too many bytes", "meta.json")
+            data = zf.read(info)
+    except KeyError:
+        raise FileFormatError(path, "not a readable map state: no meta.json", "meta.json") from None
+    except (
+        OSError, EOFError, ValueError, zipfile.BadZipFile, zlib.error, NotImplementedError,
+        RuntimeError,
+    ) as exc:  # fmt: skip
+        if isinstance(exc, FileFormatError):
+            raise
+        raise FileFormatError(path, f"not a readable map state: {clip(str(exc), 80)}") from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise FileFormatError(path, "not UTF-8 text", "meta.json") from None
+    meta = parse_json(text, path)
     if not isinstance(meta, dict) or meta.get("format") != STATE_FORMAT:
         raise FileFormatError(path, f"not a {STATE_FORMAT} file", field="meta.json format")
     return meta
@@ -121,16 +139,34 @@ def iter_state_tiles(path: PathLike, tile_cells: int) -> Iterator[StateTile]:
                     groups.setdefault(member.split("/")[0], []).append(member)
             for prefix in sorted(groups):
                 yield _read_tile(zf, prefix, groups[prefix], tile_cells)
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
-        raise FileFormatError(path, f"not a readable map state: {exc}") from None
+    except FileFormatError:
+        raise
+    except (
+        OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error,
+        NotImplementedError, RuntimeError,
+    ) as exc:  # fmt: skip
+        raise FileFormatError(path, f"not a readable map state: {clip(str(exc), 100)}") from None
 
 
 def _read_tile(zf: zipfile.ZipFile, prefix: str, members: list[str], n: int) -> StateTile:
     _, r, c = prefix.split("_")
+    if not (r.lstrip("-").isdigit() and c.lstrip("-").isdigit() and len(r + c) < 30):
+        raise ValueError(f"{prefix}: not a tile name")
+    # each member read within bounds (its declared size checked, no pickle): at most a
+    # tile of float64, the window four integers
+    npz = SafeNpz(Path(str(zf.filename)), "a map state", zf=zf)
     arrays: dict[str, NDArray[np.float64]] = {}
     for member in members:
-        with zf.open(member) as fh:
-            arrays[member[len(prefix) + 1 : -4]] = np.lib.format.read_array(fh, allow_pickle=False)
+        name = member[len(prefix) + 1 : -4]
+        is_window = name == "_window"
+        arrays[name] = npz.read(
+            member[:-4],
+            kinds="iu" if is_window else "f",
+            ndim=1 if is_window else 2,
+            max_bytes=64 if is_window else n * n * 8,
+        )
+    if "_window" not in arrays:
+        raise ValueError(f"{prefix}: no _window")
     window = arrays.pop("_window")
     if window.shape != (4,):
         raise ValueError(f"{prefix}/_window: shape {window.shape}, expected (4,)")

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import shutil
 import tempfile
 import weakref
@@ -27,7 +28,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from rough_map._files import PathLike
+from rough_map._files import PathLike, clean_dead_temp_dirs, write_error
 from rough_map.config import Crs
 from rough_map.errors import FileFormatError, InputError
 from rough_map.map.footprints import patch_corners
@@ -51,6 +52,8 @@ __all__ = ["COUNTS", "LATEST", "TiledMap", "is_accumulator"]
 
 #: Value layers that are sums of observations (fused by addition).
 COUNTS = ("count", "far_count")
+#: Prefix of the temporary folder of a map's tiles, followed by the process id.
+_SPILL_PREFIX = "rough_map_tiles_"
 
 #: Layers holding the latest time seen (fused by a maximum).
 LATEST = ("last_seen", "far_last_seen")
@@ -113,10 +116,17 @@ class TiledMap:
         self._template: list[tuple[str, Any]] | None = None
         self._attrs: dict[str, Any] = {}
         self._own_dir = spill_dir is None
-        self._dir = Path(
-            tempfile.mkdtemp(prefix="rough_map_tiles_") if spill_dir is None else spill_dir
-        )
-        self._dir.mkdir(parents=True, exist_ok=True)
+        if spill_dir is None:  # those of killed runs
+            clean_dead_temp_dirs(_SPILL_PREFIX)
+        try:
+            self._dir = Path(
+                tempfile.mkdtemp(prefix=f"{_SPILL_PREFIX}{os.getpid()}_")
+                if spill_dir is None
+                else spill_dir
+            )
+            self._dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise write_error(spill_dir or tempfile.gettempdir(), exc) from None
         if self._own_dir:  # removed with the map, at the latest when Python exits
             self._cleanup = weakref.finalize(self, shutil.rmtree, self._dir, True)
         self.bounds: tuple[float, float, float, float] | None = None
@@ -347,8 +357,13 @@ class TiledMap:
         rr, cc = np.flatnonzero(used.any(axis=1)), np.flatnonzero(used.any(axis=0))
         r0, r1, c0, c1 = int(rr[0]), int(rr[-1]) + 1, int(cc[0]), int(cc[-1]) + 1
         arrays: dict[str, Any] = {name: grid[name][r0:r1, c0:c1] for name in grid.layers}
-        with open(self._path(key), "wb") as fh:
-            np.savez(fh, _window=np.array([r0, r1, c0, c1]), **arrays)
+        path = self._path(key)
+        try:
+            with open(path, "wb") as fh:
+                np.savez(fh, _window=np.array([r0, r1, c0, c1]), **arrays)
+        except OSError as exc:  # a full or read-only temporary folder
+            path.unlink(missing_ok=True)
+            raise write_error(path, exc) from None
         self._spilled.add(key)
 
     # -- the state on disk ------------------------------------------------------------

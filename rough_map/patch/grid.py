@@ -11,7 +11,8 @@ import numpy as np
 
 from rough_map.errors import InputError, PatchError
 from rough_map.geometry import check_angle, levelling_rotation, rotation_matrix, transform_columns
-from rough_map.patch.spec import PatchSpec, _as_cloud
+from rough_map.patch._params import check_bool, check_int, check_real
+from rough_map.patch.spec import PatchSpec, _as_cloud, _check_spec
 
 log = logging.getLogger(__name__)
 
@@ -133,7 +134,13 @@ def grid_points(
     -------
     GriddedPatch
     """
-    spec = spec or PatchSpec()
+    spec = PatchSpec() if spec is None else _check_spec(spec)
+    check_int("min_points", min_points, low=0, high=2**62, unit="points")
+    check_bool("estimate_noise", estimate_noise)
+    check_bool("level", level)
+    check_real("level_threshold", level_threshold, "rad", low=0.0, high=math.pi / 2)
+    for name, angle in (("roll", roll), ("pitch", pitch)):
+        check_real(name, angle, "rad", low=-math.pi / 2, high=math.pi / 2, none=True)
     pts = _as_cloud(points)
     rot = None
     if roll is not None or pitch is not None:

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from rough_map.errors import InputError, PatchError
+from rough_map.patch._params import MAX_SAMPLES, check_choice, check_int, check_real
 
 log = logging.getLogger(__name__)
 
@@ -45,23 +46,26 @@ class PatchSpec:
 
     def __post_init__(self) -> None:
         for name in ("size", "spacing"):
-            v = getattr(self, name)
-            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
-                raise InputError(f"{name} must be a positive length in m, got {v!r}")
+            check_real(name, getattr(self, name), "m", low=0.0, high=1e3, low_open=True)
         for name in ("ahead", "lateral"):
-            v = getattr(self, name)
-            if not (isinstance(v, int | float) and math.isfinite(v)):
-                raise InputError(f"{name} must be a finite distance in m, got {v!r}")
+            check_real(name, getattr(self, name), "m", low=-1e3, high=1e3)
         if self.n < 8:
             raise InputError(
                 f"size / spacing gives {self.n} samples per profile; need at least 8 "
                 f"(size={self.size} m, spacing={self.spacing} m)"
             )
+        if self.n > MAX_SAMPLES:
+            raise InputError(
+                f"size / spacing gives {self.size / self.spacing:.6g} samples per profile "
+                f"(size={self.size:g} m, "
+                f"spacing={self.spacing:g} m); at most {MAX_SAMPLES}: use a larger spacing"
+            )
 
     @property
     def n(self) -> int:
         """Samples per profile and number of profiles."""
-        return int(round(self.size / self.spacing))
+        ratio = self.size / self.spacing
+        return int(round(ratio)) if math.isfinite(ratio) else 2**62
 
     @property
     def x0(self) -> float:
@@ -94,6 +98,7 @@ def spacing_ladder(spec: PatchSpec) -> list[PatchSpec]:
     ``2 pi k / L``) gridded about sqrt(2) times coarser than the one before: at 8 mm,
     steps of 8, 11.2, 16, 22.4 and 32 mm (112, 80, 56, 40 and 28 samples).
     """
+    _check_spec(spec)
     extent = spec.n * spec.spacing
     out: list[PatchSpec] = []
     for k in range(AUTO_STEPS):
@@ -108,6 +113,7 @@ def spacing_ladder(spec: PatchSpec) -> list[PatchSpec]:
 
 def points_in_patch(points: np.ndarray, spec: PatchSpec) -> int:
     """Points of an N x 3 cloud (vehicle frame, m) over the patch square, without tilt."""
+    _check_spec(spec)
     pts = _as_cloud(points)
     half = 0.5 * spec.n * spec.spacing
     inside = np.abs(pts[:, 0] - spec.ahead) < half
@@ -150,9 +156,18 @@ def auto_spacing(
     PatchError
         Even the coarsest step (4 times ``spec.spacing``) gets fewer points per cell.
     """
-    spec = spec or PatchSpec()
-    if not (math.isfinite(min_points_per_cell) and min_points_per_cell > 0):
-        raise InputError(f"min_points_per_cell must be > 0, got {min_points_per_cell!r}")
+    spec = PatchSpec() if spec is None else _check_spec(spec)
+    check_int("n_points", n_points, low=0, high=2**62, unit="points")
+    value = min_points_per_cell
+    if not (
+        isinstance(value, int | float | np.integer | np.floating)
+        and not isinstance(value, bool)
+        and math.isfinite(value)
+        and 0 < value <= 1e9
+    ):
+        raise InputError(
+            f"min_points_per_cell must be > 0 (points per cell, finite); got {value!r:.40}"
+        )
     ladder = spacing_ladder(spec)
     for cand in ladder:
         if n_points / cand.n**2 >= min_points_per_cell:
@@ -213,11 +228,10 @@ class Extraction:
     def __post_init__(self) -> None:
         if not isinstance(self.patch, PatchSpec):
             raise InputError(f"patch must be a PatchSpec, got {type(self.patch).__name__}")
-        if self.method not in METHODS:
-            raise InputError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        check_choice("method", self.method, METHODS)
         for name in ("use_imu", "subtract_noise", "auto_spacing"):
             if not isinstance(getattr(self, name), bool):
-                raise InputError(f"{name} must be true or false, got {getattr(self, name)!r}")
+                raise InputError(f"{name} must be true or false, got {getattr(self, name)!r:.40}")
 
     def to_dict(self) -> dict[str, Any]:
         """The flat form a model and its card record: ``ahead, size, spacing, lateral`` (m),
@@ -264,12 +278,14 @@ class Extraction:
         if not isinstance(value, Mapping):
             raise InputError(f"extraction must be a mapping, got {type(value).__name__}")
         known = {"ahead", "size", "spacing", "lateral", "use_imu", "method", "subtract_noise"}
-        unknown = sorted(set(value) - known)
+        unknown = sorted(repr(k)[:30] for k in set(value) - known)
         if unknown:
-            raise InputError(f"unknown extraction settings {unknown}; known: {sorted(known)}")
+            raise InputError(
+                f"unknown extraction settings {', '.join(unknown[:3])}; known: {sorted(known)}"
+            )
         geometry = {k: value[k] for k in ("ahead", "size", "spacing", "lateral") if k in value}
         options = {k: value[k] for k in ("use_imu", "method", "subtract_noise") if k in value}
-        if geometry.get("spacing") == "auto":
+        if isinstance(geometry.get("spacing"), str) and geometry["spacing"] == "auto":
             del geometry["spacing"]
             options["auto_spacing"] = True
         return cls(patch=PatchSpec(**geometry), **options)
@@ -282,12 +298,24 @@ class Extraction:
         return x0, x0 + self.patch.n * self.patch.spacing
 
 
+def _check_spec(spec: Any) -> PatchSpec:
+    """``spec`` if it is a :class:`PatchSpec`, else :class:`InputError`."""
+    if not isinstance(spec, PatchSpec):
+        raise InputError(
+            f"spec must be a PatchSpec (patch geometry in m); got {type(spec).__name__}"
+        )
+    return spec
+
+
 def _as_cloud(points: np.ndarray, name: str = "points") -> np.ndarray:
     """Shape and dtype checks of an N x 3 cloud, without a pass over the values."""
     try:
-        pts = np.asarray(points, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError(f"{name} must be a numeric N x 3 array of x, y, z in m") from None
+        raw = np.asarray(points)
+        if raw.dtype.kind not in "biuf":
+            raise TypeError(raw.dtype)
+        pts = np.asarray(raw, dtype=float)
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(f"{name} must be a real numeric N x 3 array of x, y, z in m") from None
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise InputError(f"{name} must have shape (N, 3) (x, y, z in m), got {pts.shape}")
     if pts.shape[0] == 0:

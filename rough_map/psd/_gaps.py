@@ -3,21 +3,22 @@
 from __future__ import annotations
 
 import math
+from numbers import Real
 from typing import Any
 
 import numpy as np
 
 from rough_map.errors import InputError
+from rough_map.patch._params import MAX_CELLS, check_real
 
 
 def check_spacing(spacing: Any) -> float:
     """The sample spacing as a positive float in m, or :class:`InputError`."""
-    try:
-        value = float(spacing)
-    except (TypeError, ValueError):
-        raise InputError(f"spacing must be a number in m, got {spacing!r}") from None
-    if not math.isfinite(value) or value <= 0:
-        raise InputError(f"spacing must be a positive length in m, got {value!r}")
+    ok = isinstance(spacing, Real) and not isinstance(spacing, bool | np.bool_)
+    value = float(spacing) if ok else math.nan
+    if not (math.isfinite(value) and 0 < value <= 1e3):
+        shown = repr(spacing) if len(repr(spacing)) <= 40 else repr(spacing)[:37] + "..."
+        raise InputError(f"spacing must be a positive length in m (at most 1000); got {shown}")
     return value
 
 
@@ -27,10 +28,7 @@ def check_heights(heights: Any, min_samples: int = 8) -> np.ndarray:
     Raises :class:`InputError` for non-numeric, empty, short or infinite input (NaN is
     missing data and passes).
     """
-    try:
-        h = np.asarray(heights, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError("heights must be a numeric array of elevations in m") from None
+    h = as_heights(heights)
     if h.ndim == 1:
         h = h[None, :]
     if h.ndim != 2:
@@ -43,9 +41,23 @@ def check_heights(heights: Any, min_samples: int = 8) -> np.ndarray:
         raise InputError(
             f"profiles need at least {min_samples} samples, got {h.shape[1]} (shape {h.shape})"
         )
+    if h.size > MAX_CELLS:
+        raise InputError(f"heights has {h.size} cells (shape {h.shape}); at most {MAX_CELLS}")
     if np.isinf(h).any():
         raise InputError("heights contain infinite values; use NaN for missing cells")
     return h
+
+
+def as_heights(heights: Any) -> np.ndarray:
+    """``heights`` as a float array, or :class:`InputError` for non-numeric input."""
+    if np.iscomplexobj(heights) or (
+        isinstance(heights, np.ndarray) and heights.dtype.kind not in "biuf"
+    ):
+        raise InputError("heights must be a real numeric array of elevations in m")
+    try:
+        return np.asarray(heights, dtype=float)
+    except (TypeError, ValueError, OverflowError):
+        raise InputError("heights must be a numeric array of elevations in m") from None
 
 
 def fill_gaps(
@@ -75,7 +87,16 @@ def fill_gaps(
     keep : ndarray of bool, shape (m,)
         Profiles that pass the policy.
     """
-    h = np.asarray(heights, dtype=float)
+    h = as_heights(heights)
+    if h.ndim != 2 or h.size == 0:
+        raise InputError(
+            f"heights must be a non-empty 2-D grid (profiles x samples), got {h.shape}"
+        )
+    if h.size > MAX_CELLS:
+        raise InputError(f"heights has {h.size} cells (shape {h.shape}); at most {MAX_CELLS}")
+    spacing = check_spacing(spacing)
+    check_real("max_gap", max_gap, "m", low=0.0, high=1e6)
+    check_real("max_gap_fraction", max_gap_fraction, "", low=0.0, high=1.0)
     missing = np.isnan(h)
     if not missing.any():
         return h, np.ones(h.shape[0], dtype=bool)

@@ -22,6 +22,7 @@ import numpy as np
 from rough_map._files import atomic_output
 from rough_map.errors import InputError
 from rough_map.iso8608 import surface_constant
+from rough_map.patch._params import MAX_SAMPLES, check_int
 from rough_map.psd._spectra import frozen, hann_plan
 
 #: Waviness grid of the tables (dimensionless).
@@ -40,8 +41,8 @@ _EXACT_BINS = 48
 
 def check_gridding(gridding: str) -> None:
     """Raise :class:`InputError` unless ``gridding`` is one of :data:`GRIDDINGS`."""
-    if gridding not in GRIDDINGS:
-        raise InputError(f"gridding must be one of {GRIDDINGS}, got {gridding!r}")
+    if not (isinstance(gridding, str) and gridding in GRIDDINGS):
+        raise InputError(f"gridding must be one of {GRIDDINGS}, got {gridding!r:.40}")
 
 
 @lru_cache(maxsize=32)
@@ -184,7 +185,18 @@ def write_leakage_tables(
     sizes : sequence of int
         Profile lengths in samples.
     """
-    path.parent.mkdir(parents=True, exist_ok=True)
+    if not isinstance(path, str | Path):
+        raise InputError(f"path must be a file path; got {type(path).__name__}")
+    path = Path(path)
+    if isinstance(sizes, str | bytes) or not isinstance(sizes, Sequence) or len(sizes) > 64:
+        raise InputError("sizes must be a sequence of at most 64 profile lengths (samples)")
+    for n in sizes:
+        check_int("sizes[i]", n, low=8, high=MAX_SAMPLES, unit="samples")
+    sizes = [int(n) for n in sizes]
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise InputError(f"{path.parent}: cannot create the folder ({err.strerror})") from None
     tables: dict[str, Any] = {
         f"hann_{n}_{g}": compute_leakage_table(n, "hann", g) for n in sizes for g in GRIDDINGS
     }

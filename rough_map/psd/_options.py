@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from numbers import Real
 
 from rough_map.errors import InputError
 from rough_map.patch import METHODS
-from rough_map.psd._leakage import check_gridding
+from rough_map.patch._params import MAX_CELLS, check_bool, check_choice, check_int, check_real
+from rough_map.psd._leakage import GRIDDINGS
+from rough_map.psd._spectra import check_window
 
 
 @dataclass(frozen=True)
@@ -28,12 +31,30 @@ class Options:
     waviness: float | None = None
 
     def __post_init__(self) -> None:
-        if self.method not in METHODS:
-            raise InputError(f"method must be one of {METHODS}, got {self.method!r}")
-        check_gridding(self.gridding)
+        check_window(self.window)
+        check_choice("method", self.method, METHODS)
+        check_choice("gridding", self.gridding, GRIDDINGS)
+        check_int("nperseg", self.nperseg, low=8, high=MAX_CELLS, unit="samples", none=True)
+        check_int("noverlap", self.noverlap, low=0, high=MAX_CELLS, unit="samples", none=True)
+        if self.nperseg is not None and self.noverlap is not None:
+            if self.noverlap >= self.nperseg:
+                raise InputError(
+                    f"noverlap must be in [0, nperseg), got {self.noverlap} for {self.nperseg}"
+                )
+        check_real("omega0", self.omega0, "rad/m", low=1e-6, high=1e6)
+        check_real("noise_psd", self.noise_psd, "m^3/rad", low=0.0, high=1e6, none=True)
+        check_bool("subtract_noise", self.subtract_noise)
+        check_real("max_gap", self.max_gap, "m", low=0.0, high=1e6)
+        check_real("max_gap_fraction", self.max_gap_fraction, "", low=0.0, high=1.0)
+        check_int("min_profiles", self.min_profiles, low=1, high=MAX_CELLS, unit="profiles")
         w = self.waviness
-        if w is not None and not (math.isfinite(w) and -6 < w < 0):
-            raise InputError(f"waviness must be a negative number (about -2), got {w!r}")
+        if w is not None and not (
+            isinstance(w, Real) and not isinstance(w, bool) and math.isfinite(w) and -6 < w < 0
+        ):
+            raise InputError(
+                f"waviness must be a negative number in (-6, 0) (about -2, dimensionless) or "
+                f"None; got {w!r:.40}"
+            )
 
     def check_omega0(self) -> None:
         """Raise :class:`InputError` unless ``omega0`` is a positive wavenumber."""

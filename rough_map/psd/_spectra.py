@@ -13,6 +13,31 @@ import numpy as np
 import scipy.fft
 
 from rough_map.errors import InputError
+from rough_map.patch._params import MAX_CELLS, check_int
+
+#: Windows the estimator is known to work with (any scipy window name that needs no
+#: parameter is accepted).
+WINDOWS = ("hann", "hamming", "blackman", "boxcar", "bartlett", "flattop", "nuttall")
+
+
+def check_window(window: object) -> str:
+    """``window`` if :func:`scipy.signal.get_window` knows it without parameters, else
+    :class:`InputError` listing the usual names."""
+    if window in WINDOWS:  # without importing scipy.signal (a worker never needs it)
+        return str(window)
+    if isinstance(window, str) and window.strip():
+        from scipy.signal import get_window
+
+        try:
+            get_window(window, 16)
+            return window
+        except (ValueError, TypeError, KeyError):
+            pass
+    shown = repr(window)
+    shown = shown if len(shown) <= 40 else shown[:37] + "..."
+    raise InputError(
+        f"window must be a scipy window name such as {', '.join(WINDOWS)}; got {shown}"
+    )
 
 
 def frozen(*arrays: np.ndarray) -> None:
@@ -47,7 +72,6 @@ def hann_plan(n: int, window: str) -> tuple[np.ndarray, np.ndarray, float]:
     return win, basis, float(np.sum(win**2))
 
 
-@lru_cache(maxsize=64)
 def log_bias(window: str, nperseg: int, noverlap: int, n: int) -> float:
     """``E[ln(P_hat / P)]`` of a (Welch) PSD ordinate of a Gaussian process.
 
@@ -63,7 +87,23 @@ def log_bias(window: str, nperseg: int, noverlap: int, n: int) -> float:
         Segment length and overlap in samples.
     n : int
         Profile length in samples.
+
+    Raises
+    ------
+    InputError
+        An unknown window, or segment sizes that are not integers with
+        ``8 <= nperseg <= n`` and ``0 <= noverlap < nperseg``.
     """
+    check_window(window)
+    check_int("n", n, low=8, high=MAX_CELLS, unit="samples")
+    check_int("nperseg", nperseg, low=8, high=int(n), unit="samples")
+    check_int("noverlap", noverlap, low=0, high=int(nperseg) - 1, unit="samples")
+    return _log_bias(window, int(nperseg), int(noverlap), int(n))
+
+
+@lru_cache(maxsize=64)
+def _log_bias(window: str, nperseg: int, noverlap: int, n: int) -> float:
+    """:func:`log_bias` of checked arguments (cached)."""
     step = nperseg - noverlap
     k = 1 + (n - nperseg) // step
     if k <= 1:
@@ -156,7 +196,7 @@ def spectrum(
         detrend="linear",
         axis=-1,
     )
-    return 2 * np.pi * f[1:], p[..., 1:] / (2 * np.pi), log_bias(window, nperseg, noverlap, n)
+    return 2 * np.pi * f[1:], p[..., 1:] / (2 * np.pi), _log_bias(window, nperseg, noverlap, n)
 
 
 def detrended_rms(h: np.ndarray) -> np.ndarray:

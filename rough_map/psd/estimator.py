@@ -15,9 +15,10 @@ from typing import Any
 import numpy as np
 
 from rough_map.errors import InputError, PatchError
+from rough_map.patch._params import MAX_CELLS, MAX_PROFILE, MAX_SAMPLES, check_int
 from rough_map.psd._fit import Spectra, fit
-from rough_map.psd._gaps import check_heights, check_spacing, fill_gaps
-from rough_map.psd._options import Options
+from rough_map.psd._gaps import as_heights, check_heights, check_spacing, fill_gaps
+from rough_map.psd._options import Options, check_window
 from rough_map.psd._result import PatchRoughness
 from rough_map.psd._spectra import detrended_rms, periodogram, spectrum
 
@@ -153,20 +154,23 @@ def patch_roughness_batch(
     PatchError
         Too few usable profiles in some patch.
     """
-    unknown = set(options) - {f.name for f in dataclasses.fields(Options)}
+    unknown = sorted(set(options) - {f.name for f in dataclasses.fields(Options)})
     if unknown:
-        raise TypeError(f"patch_roughness_batch() got unexpected keyword arguments {unknown}")
+        raise UnknownOptionError(
+            f"patch_roughness_batch() got unexpected keyword arguments {unknown[:5]}"
+        )
     opt = Options(**options)
     spacing = check_spacing(spacing)
     opt.check_omega0()
     return _batch(_as_float(heights), spacing, opt)
 
 
+class UnknownOptionError(InputError, TypeError):
+    """An unknown keyword option (a TypeError too, as Python raises for a bad keyword)."""
+
+
 def _as_float(heights: Any) -> np.ndarray:
-    try:
-        return np.asarray(heights, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError("heights must be a numeric array of elevations in m") from None
+    return as_heights(heights)
 
 
 def _batch(arr: np.ndarray, spacing: float, opt: Options) -> list[PatchRoughness]:
@@ -185,6 +189,21 @@ def _checked_stack(arr: np.ndarray, opt: Options) -> np.ndarray:
         raise InputError(f"heights is empty (shape {arr.shape})")
     if arr.shape[-1] < 8:
         check_heights(arr.reshape(-1, arr.shape[-1]))  # raises: too few samples
+    n = arr.shape[-1]
+    if n > MAX_PROFILE:
+        raise InputError(
+            f"heights has {n} samples per profile; the estimator takes at most {MAX_PROFILE}: "
+            "use a coarser spacing (m)"
+        )
+    seg = n if opt.nperseg is None else min(opt.nperseg, n)
+    if arr.shape[1] > 1 and seg > MAX_SAMPLES:
+        raise InputError(
+            f"heights has {n} samples per profile (segment) and {arr.shape[1]} profiles; the "
+            f"estimator takes at most {MAX_SAMPLES} per segment when it correlates profiles "
+            "(its tables grow as the square): use a coarser spacing (m) or nperseg"
+        )
+    if arr[0].size > MAX_CELLS:
+        raise InputError(f"a patch of {arr[0].size} cells (shape {arr.shape}); at most {MAX_CELLS}")
     if arr.shape[1] < opt.min_profiles:
         raise PatchError(f"the patch has {arr.shape[1]} profiles, need at least {opt.min_profiles}")
     return arr
@@ -298,8 +317,11 @@ def profile_psd(
         the detrended profile (Parseval).
     """
     spacing = check_spacing(spacing)
-    one = np.ndim(heights) == 1
+    check_window(window)
+    check_int("nperseg", nperseg, low=8, high=MAX_CELLS, unit="samples", none=True)
+    check_int("noverlap", noverlap, low=0, high=MAX_CELLS, unit="samples", none=True)
     h = check_heights(heights)
+    one = h.shape[0] == 1 and np.ndim(heights) == 1
     filled, keep = fill_gaps(h, spacing, max_gap=max_gap, max_gap_fraction=max_gap_fraction)
     safe = np.where(keep[:, None], filled, 0.0)
     omega, p, _ = spectrum(safe, spacing, window, nperseg, noverlap)

@@ -16,9 +16,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pydantic import ValidationError
 
 from rough_map.calibration_files import is_opencv_file
-from rough_map.config import StereoCalibration, load_mapping, load_model
+from rough_map.config import StereoCalibration, load_mapping, load_model, schema_error
 from rough_map.errors import InputError, SchemaError
 from rough_map.stereo.matching import check_pair
 
@@ -73,9 +74,17 @@ def load_calibration(
         )
     calib = load_model(path, StereoCalibration)
     if camera_to_vehicle is not None:
-        calib = StereoCalibration.model_validate(
-            calib.model_dump() | {"camera_to_vehicle": np.asarray(camera_to_vehicle).tolist()}
-        )
+        try:
+            pose = np.asarray(camera_to_vehicle, dtype=float).tolist()
+            calib = StereoCalibration.model_validate(
+                calib.model_dump() | {"camera_to_vehicle": pose}
+            )
+        except ValidationError as err:
+            raise schema_error(path, err) from None
+        except (TypeError, ValueError):
+            raise SchemaError(
+                path, "must be a 4x4 matrix of numbers", "camera_to_vehicle"
+            ) from None
     return calib
 
 

@@ -20,6 +20,10 @@ __all__ = ["SGBM_MODES", "OutlierFilterConfig", "SGBMConfig", "StereoConfig"]
 SGBM_MODES = {"SGBM": 0, "HH": 1, "SGBM_3WAY": 2, "HH4": 3}
 
 
+#: Largest integer OpenCV takes (int32).
+_INT32 = 2**31 - 1
+
+
 class SGBMConfig(BaseModel):
     """Parameters of OpenCV ``StereoSGBM``, named as in OpenCV.
 
@@ -57,19 +61,19 @@ class SGBMConfig(BaseModel):
         OpenCV SGBM variant.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     # OpenCV's names, on purpose: the YAML keys map 1:1 onto cv2.StereoSGBM.create.
-    minDisparity: int = 0
-    numDisparities: int = Field(256, gt=0, multiple_of=16)
+    minDisparity: int = Field(0, ge=-65_536, le=65_536)
+    numDisparities: int = Field(256, gt=0, le=4096, multiple_of=16)
     blockSize: int = Field(5, ge=1, le=11)
-    P1: int = Field(200, ge=0)
-    P2: int = Field(800, ge=0)
-    disp12MaxDiff: int = 1
+    P1: int = Field(200, ge=0, le=_INT32)
+    P2: int = Field(800, ge=0, le=_INT32)
+    disp12MaxDiff: int = Field(1, ge=-_INT32, le=_INT32)
     preFilterCap: int = Field(63, ge=1, le=63)
     uniquenessRatio: int = Field(10, ge=0, le=100)
-    speckleWindowSize: int = Field(100, ge=0)
-    speckleRange: int = Field(2, ge=0)
+    speckleWindowSize: int = Field(100, ge=0, le=1_000_000)
+    speckleRange: int = Field(2, ge=0, le=_INT32)
     mode: Literal["SGBM", "HH", "SGBM_3WAY", "HH4"] = "SGBM_3WAY"
 
     @model_validator(mode="after")
@@ -107,15 +111,15 @@ class OutlierFilterConfig(BaseModel):
     path's points, on the ground; the image test judges the full frame's pixels.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
-    cell: float = Field(0.024, gt=0)
+    cell: float = Field(0.024, ge=1e-4, le=100)
     k: float = Field(3.5, gt=0)
     min_tolerance: float = Field(0.003, ge=0)
-    min_count: int = Field(3, ge=1)
+    min_count: int = Field(3, ge=1, le=_INT32)
     radius: int = Field(2, ge=1, le=5)
     disparity_tolerance: float = Field(0.5, ge=0)
-    support: int = Field(12, ge=0)
+    support: int = Field(12, ge=0, le=_INT32)
 
 
 class StereoConfig(BaseModel):
@@ -169,7 +173,7 @@ class StereoConfig(BaseModel):
         the full-frame path and in the patch path without ``ground_prior``.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     sgbm: SGBMConfig = Field(default_factory=SGBMConfig)
     outlier_filter: OutlierFilterConfig | None = Field(default_factory=OutlierFilterConfig)
@@ -179,7 +183,7 @@ class StereoConfig(BaseModel):
     band_margin: float = Field(0.015, ge=0)
     min_band: float = Field(0.025, ge=0)
     crop_margin: float = Field(0.05, ge=0)
-    margin_px: int = Field(2, ge=0)
+    margin_px: int = Field(2, ge=0, le=65_536)
     col_step: int = Field(2, ge=1, le=4)
     row_step: int = Field(1, ge=1, le=8)
     ground_prior: bool = True

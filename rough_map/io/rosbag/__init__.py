@@ -16,6 +16,11 @@ The same messages can be written (:func:`write_bag`, :func:`pointcloud2_message`
 :func:`write_example_bag` records a traverse (a simulated one, say) as a rover's logger
 would: the example bag of the README and the bags of the tests are made this way.
 
+Damaged or hostile bags give a one-line :class:`~rough_map.errors.FileFormatError`: the
+record sizes of ``.bag`` and ``.mcap`` files and the fields of ``metadata.yaml`` are checked
+against the files before rosbags reads them (:mod:`~.checks`), and the standard message
+types a bag defines must have the standard fields.
+
 Modules: :mod:`~.reader` (opening bags, topics), :mod:`~.messages` (decoding messages),
 :mod:`~.tf` (the tf tree), :mod:`~.trajectory` (odometry and IMU over time),
 :mod:`~.importer` (:func:`import_bag`), :mod:`~.writer` (building and writing messages),

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from pydantic import ValidationError
 
 from rough_map._files import PathLike
 from rough_map.config import SCHEMA_VERSION, FrameSpec, ImuAttitude, Pose, TraverseSpec
@@ -119,9 +120,17 @@ def import_bag(
             f"odometry time span, {counts.empty} without a finite point",
             field=points_topic,
         )
-    spec = _traverse_spec(
-        bag, clouds.rows, odometry, imu, counts, points_topic, odom_topic, imu_topic, every
-    )
+    try:
+        spec = _traverse_spec(
+            bag, clouds.rows, odometry, imu, counts, points_topic, odom_topic, imu_topic, every
+        )
+    except ValidationError as err:  # e.g. stamps ns apart but 1e18 ns from the first cloud
+        first = err.errors()[0]
+        raise FileFormatError(
+            bag,
+            f"the clouds do not make a valid traverse: {str(first['msg'])[:80]}",
+            field=points_topic,
+        ) from None
     _log_counts(bag, counts, len(clouds.rows), odometry)
     save_traverse(spec, out_dir)
     return Traverse.from_spec(spec, out_dir)
@@ -140,7 +149,7 @@ class _CloudImport:
     counts: _ImportCounts = field(default_factory=_ImportCounts)
     to_vehicle: dict[str, np.ndarray | None] = field(default_factory=dict)
     rows: list[dict[str, Any]] = field(default_factory=list)
-    last_ns: int = -1
+    last_ns: int = -(2**63)  # stamps before 1970 are int64 too
 
     def add(self, index: int, msg: Any, t_ns: int) -> None:
         """Write the cloud of ``PointCloud2`` message ``index`` (receive time ``t_ns``), in

@@ -57,7 +57,9 @@ def pointcloud2_to_xyz(msg: Any) -> np.ndarray:
     fields = {f.name: f for f in msg.fields}
     missing = [c for c in "xyz" if c not in fields]
     if missing:
-        raise InputError(f"PointCloud2 without field(s) {missing}; has {sorted(fields)}")
+        names = sorted(str(name) for name in fields)
+        has = repr(names[:6])[:-1] + (", ...]" if len(names) > 6 else "]")
+        raise InputError(f"PointCloud2 without field(s) {missing}; has {has[:80]}")
     order = ">" if msg.is_bigendian else "<"
     formats = []
     for c in "xyz":
@@ -99,10 +101,10 @@ def imu_rpy(msg: Any) -> tuple[float, float, float] | None:
     """Roll, pitch, yaw (rad) of a ``sensor_msgs/Imu``; None if it has no orientation.
 
     A message has no orientation when ``orientation_covariance[0] == -1`` (the ROS
-    convention) or its quaternion is zero.
+    convention) or its quaternion is zero or not finite.
     """
     quaternion = quaternion_xyzw(msg.orientation)
-    if float(msg.orientation_covariance[0]) == -1.0 or not np.any(quaternion):
+    if float(msg.orientation_covariance[0]) == -1.0 or not valid_quaternion(quaternion):
         return None
     roll, pitch, yaw = rotations(quaternion[None]).as_euler("xyz")[0]
     return float(roll), float(pitch), float(yaw)
@@ -136,9 +138,17 @@ class OdometryPose:
 
 
 def odometry_pose(msg: Any) -> OdometryPose:
-    """The pose of a ``nav_msgs/Odometry`` message, with Euler angles in rad."""
+    """The pose of a ``nav_msgs/Odometry`` message, with Euler angles in rad.
+
+    Raises
+    ------
+    InputError
+        The orientation quaternion is zero or not finite.
+    """
     p = msg.pose.pose.position
     orientation = quaternion_xyzw(msg.pose.pose.orientation)
+    if not valid_quaternion(orientation):
+        raise InputError(f"Odometry orientation {orientation.tolist()} is not a rotation")
     roll, pitch, yaw = rotations(orientation[None]).as_euler("xyz")[0]
     return OdometryPose(
         t=stamp_ns(msg.header) * 1e-9,
@@ -156,6 +166,14 @@ def odometry_pose(msg: Any) -> OdometryPose:
 def quaternion_xyzw(q: Any) -> np.ndarray:
     """The (x, y, z, w) of a ``geometry_msgs/Quaternion`` as a float array."""
     return np.array([q.x, q.y, q.z, q.w], dtype=float)
+
+
+def valid_quaternion(q: np.ndarray) -> bool:
+    """Whether the (x, y, z, w) ``q`` is a rotation: finite, of a norm neither 0 nor
+    overflowing (scipy normalises it)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        norm = float(np.linalg.norm(q))
+    return bool(np.isfinite(q).all()) and np.isfinite(norm) and norm > 1e-9
 
 
 def rotations(quaternions: np.ndarray) -> Rotation:

@@ -6,6 +6,7 @@ walks the tree of frames from one frame to another.
 
 from __future__ import annotations
 
+import logging
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,11 +21,14 @@ from rough_map.io.rosbag.messages import (
     frame_name,
     rotations,
     stamp_ns,
+    valid_quaternion,
 )
 from rough_map.io.rosbag.reader import open_bag, topic_messages
 
 if TYPE_CHECKING:
     from rosbags.highlevel import AnyReader
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -60,19 +64,31 @@ class Transform:
 
 
 def tf_transforms(msg: Any) -> list[Transform]:
-    """The transforms of a ``tf2_msgs/TFMessage``."""
+    """The transforms of a ``tf2_msgs/TFMessage``.
+
+    Transforms with a zero or non-finite quaternion, or a non-finite translation, are left
+    out with a warning.
+    """
     out = []
+    skipped = 0
     for tf in msg.transforms:
         tr, q = tf.transform.translation, tf.transform.rotation
+        translation = (float(tr.x), float(tr.y), float(tr.z))
+        quaternion = (float(q.x), float(q.y), float(q.z), float(q.w))
+        if not valid_quaternion(np.array(quaternion)) or not np.isfinite(translation).all():
+            skipped += 1
+            continue
         out.append(
             Transform(
                 t=stamp_ns(tf.header) * 1e-9,
                 parent=frame_name(tf.header.frame_id),
                 child=frame_name(tf.child_frame_id),
-                translation=(float(tr.x), float(tr.y), float(tr.z)),
-                quaternion=(float(q.x), float(q.y), float(q.z), float(q.w)),
+                translation=translation,
+                quaternion=quaternion,
             )
         )
+    if skipped:
+        log.warning("%d transforms with a non-finite or zero pose skipped", skipped)
     return out
 
 

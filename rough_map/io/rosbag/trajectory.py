@@ -22,6 +22,7 @@ from rough_map.io.rosbag.messages import (
     quaternion_xyzw,
     rotations,
     stamp_ns,
+    valid_quaternion,
 )
 from rough_map.io.rosbag.reader import open_bag, topic_messages
 
@@ -134,7 +135,8 @@ def read_imu(bag: PathLike, topic: str) -> Trajectory:
 def read_trajectory(reader: AnyReader, path: Path, topic: str, msgtype: str) -> Trajectory:
     """Odometry poses, or IMU orientations (``msgtype`` IMU), of a topic, sorted by stamp.
 
-    Messages without orientation, and repeated stamps, are left out with a warning.
+    Messages without orientation (or with a zero or non-finite quaternion or position),
+    and repeated stamps, are left out with a warning.
 
     Raises
     ------
@@ -147,7 +149,7 @@ def read_trajectory(reader: AnyReader, path: Path, topic: str, msgtype: str) -> 
     for receive_ns, msg in topic_messages(reader, path, topic, msgtype):
         if msgtype == ODOMETRY:
             pose = msg.pose.pose
-            position = [pose.position.x, pose.position.y, pose.position.z]
+            position = [float(pose.position.x), float(pose.position.y), float(pose.position.z)]
             quaternion = quaternion_xyzw(pose.orientation)
             child_frame_id = msg.child_frame_id
         else:
@@ -155,11 +157,12 @@ def read_trajectory(reader: AnyReader, path: Path, topic: str, msgtype: str) -> 
             unknown = float(msg.orientation_covariance[0]) == -1.0  # the ROS convention
             quaternion = np.zeros(4) if unknown else quaternion_xyzw(msg.orientation)
         frame_id = msg.header.frame_id
-        if not np.any(quaternion):
+        if not valid_quaternion(quaternion) or not np.isfinite(position).all():
             skipped += 1
             continue
         samples.append((stamp_ns(msg.header, receive_ns), position, quaternion))
     if skipped:
+        # a zero, non-finite or overflowing quaternion is no orientation either
         log.warning("%s: %d messages on %s without orientation skipped", path, skipped, topic)
     if not samples:
         raise FileFormatError(path, f"no usable {msgtype} message on {topic!r}", field=topic)

@@ -128,7 +128,8 @@ def run_traverse(
     start = time.perf_counter()
     for i in tqdm(imaged, desc="near-to-far", unit="frame", disable=not progress):
         frame = traverse.frames[i]
-        image = check_image(read_bgr(traverse.resolve(frame.left)), calib)
+        left = traverse.resolve(frame.left, f"frames[{i}].left")
+        image = check_image(read_bgr(left), calib)
         tiles = tile_features(image, model.tile_px)  # once for predict and update
         if hasattr(model, "looks_"):
             out.append(model.predict_tiles(tiles, calib, frame.pose, t=frame.t, frame=i))

@@ -52,13 +52,13 @@ class NearFarSettings(BaseModel):
         probabilities (a few frames of a short traverse are not enough to check them).
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    tile_size_m: float = Field(0.05, gt=0)
-    max_range_m: float = Field(8.0, gt=0)
+    tile_size_m: float = Field(0.05, ge=1e-3, le=10)
+    max_range_m: float = Field(8.0, gt=0, le=1000)
     weight: float = Field(0.3, gt=0)
     min_confidence: float = Field(0.8, ge=0, le=1)
-    settle_frames: int = Field(3, ge=0)
+    settle_frames: int = Field(3, ge=0, le=100_000)
     min_posterior: float = Field(0.8, ge=0, le=1)
     recall_min_confidence: float = Field(0.9, ge=0, le=1)
     calibrate: bool = True

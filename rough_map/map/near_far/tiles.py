@@ -17,8 +17,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from rough_map.config import StereoCalibration
-from rough_map.errors import FileFormatError, InputError
+from rough_map.errors import InputError
 from rough_map.geometry import pixel_to_ground
+from rough_map.io.images import read_image
 
 __all__ = [
     "FEATURE_NAMES",
@@ -98,19 +99,16 @@ def check_image(image: ArrayLike, calib: StereoCalibration) -> NDArray[np.uint8]
 
 
 def read_bgr(path: Any) -> NDArray[np.uint8]:
-    """The colour image at ``path`` as 8-bit BGR (OpenCV).
+    """The colour image at ``path`` as 8-bit BGR (OpenCV), read with the size checks of
+    :func:`rough_map.io.images.read_image`.
 
     Raises
     ------
     FileFormatError
-        The file is missing or OpenCV cannot decode it.
+        The file is missing, declares too many pixels, or OpenCV cannot decode it.
     """
-    import cv2
 
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise FileFormatError(path, "missing or not an image OpenCV can decode")
-    return np.asarray(image, dtype=np.uint8)
+    return np.asarray(read_image(path, color=True), dtype=np.uint8)
 
 
 def tile_features(image_bgr: ArrayLike, tile_px: int = 32) -> NDArray[np.float64]:
