@@ -39,6 +39,7 @@ __all__ = [
     "clean_dead_temp_dirs",
     "clean_stale",
     "fsync_dir",
+    "fsync_file",
     "gdal_errors",
     "is_temp_name",
     "make_dir",
@@ -196,7 +197,8 @@ def fsync_dir(folder: PathLike) -> None:
         os.close(fd)
 
 
-def _fsync_file(path: Path) -> None:
+def fsync_file(path: PathLike) -> None:
+    """Flush a written file to the disk; ignored where the file system cannot."""
     fd = os.open(path, os.O_RDONLY)
     try:
         os.fsync(fd)
@@ -228,7 +230,7 @@ def verify_file(path: Path, final: Path) -> None:
         _verify_geotiff(path, final)
     elif suffix == ".png":
         _verify_png(path, final)
-    _fsync_file(path)
+    fsync_file(path)
 
 
 def _verify_geotiff(path: Path, final: Path) -> None:

@@ -79,7 +79,7 @@ def test_kill_while_staging_keeps_the_old_pair(
     models, old_pair, new_files, monkeypatch, step
 ) -> None:
     model_file, _ = old_pair
-    real_fsync = _commit._fsync_file
+    real_fsync = _commit.fsync_file
 
     def fsync(path: Path) -> None:
         real_fsync(path)
@@ -87,7 +87,7 @@ def test_kill_while_staging_keeps_the_old_pair(
         if path.name == names[step]:
             raise Killed
 
-    monkeypatch.setattr(_commit, "_fsync_file", fsync)
+    monkeypatch.setattr(_commit, "fsync_file", fsync)
     monkeypatch.setattr(shutil, "rmtree", lambda *a, **k: None)  # a kill cleans nothing
     with pytest.raises(Killed):
         save_terrain_model(models[1], model_file.with_suffix(""))

@@ -97,11 +97,18 @@ def test_bad_spacing(spacing: Any, match: str) -> None:
         (np.ones((6, 64), dtype=complex), "real numeric array"),
         (np.array([[object()] * 64] * 6), "real numeric array"),
         (np.full((6, 64), -np.inf), "infinite"),
+        # found by tools/fuzz_all.py: a ragged list (numpy's ValueError), and heights of
+        # 1e308 m whose spectra overflowed into a NaN waviness (an IndexError)
+        ([[1.0] * 64, [1.0] * 63], "real numeric array"),
+        (np.full((6, 64), 1e308), r"heights reach 1e\+308 m, beyond 1e\+06 m: wrong units"),
     ],
 )
 def test_hostile_height_grids(heights: np.ndarray, match: str) -> None:
     with pytest.raises(InputError, match=match):
         psd.patch_roughness(heights, B)
+    with pytest.raises(InputError, match=match):
+        psd.patch_roughness_batch([heights, heights] if isinstance(heights, list) else
+                                  np.stack([heights, heights]), B)  # fmt: skip
 
 
 def test_spectrum_budget() -> None:

@@ -18,6 +18,7 @@ import shutil
 from collections.abc import Callable
 from pathlib import Path
 
+from rough_map._files import fsync_dir, fsync_file, write_error
 from rough_map.classify._archive import brief
 from rough_map.errors import ModelError
 
@@ -32,24 +33,6 @@ MARKER = "complete"
 def pending_folder(model_file: Path) -> Path:
     """The pending folder of a model file ``models/NAME.skops``: ``models/.NAME.pending``."""
     return model_file.with_name(f".{model_file.name[: -len('.skops')]}.pending")
-
-
-def _fsync_dir(folder: Path) -> None:
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:  # pragma: no cover - platforms without directory fds
-        return
-    try:
-        os.fsync(fd)
-    except OSError:  # pragma: no cover
-        pass
-    finally:
-        os.close(fd)
-
-
-def _fsync_file(path: Path) -> None:
-    with open(path, "rb+") as fh:
-        os.fsync(fh.fileno())
 
 
 def resolve_pending(model_file: Path, card_file: Path) -> None:
@@ -71,7 +54,7 @@ def resolve_pending(model_file: Path, card_file: Path) -> None:
                 staged = pending / target.name
                 if staged.is_file():
                     os.replace(staged, target)
-            _fsync_dir(model_file.parent)
+            fsync_dir(model_file.parent)
             log.info("%s: completed an interrupted save of the model and its card", model_file)
         else:
             log.warning("%s: discarded an incomplete save; the previous model stays", model_file)
@@ -100,18 +83,24 @@ def commit_pair(
     """
     resolve_pending(model_file, card_file)
     pending = pending_folder(model_file)
-    pending.mkdir()
+    try:
+        pending.mkdir()
+    except OSError as err:
+        raise write_error(model_file, err) from None
     try:
         staged_model = pending / model_file.name
         staged_card = pending / card_file.name
         write_model(staged_model)
-        _fsync_file(staged_model)
+        fsync_file(staged_model)
         write_card(staged_card)
-        _fsync_file(staged_card)
+        fsync_file(staged_card)
         marker = pending / MARKER
         marker.write_bytes(b"")
-        _fsync_file(marker)
-        _fsync_dir(pending)
+        fsync_file(marker)
+        fsync_dir(pending)
+    except OSError as err:  # a full disk, a read-only folder: one line naming the model
+        shutil.rmtree(pending, ignore_errors=True)
+        raise write_error(model_file, err) from None
     except BaseException:
         shutil.rmtree(pending, ignore_errors=True)
         raise

@@ -45,19 +45,28 @@ def check_heights(heights: Any, min_samples: int = 8) -> np.ndarray:
         raise InputError(f"heights has {h.size} cells (shape {h.shape}); at most {MAX_CELLS}")
     if np.isinf(h).any():
         raise InputError("heights contain infinite values; use NaN for missing cells")
+    top = float(np.nanmax(np.abs(h))) if not np.isnan(h).all() else 0.0
+    if top > MAX_HEIGHT:
+        raise InputError(
+            f"heights reach {top:.3g} m, beyond {MAX_HEIGHT:.0e} m: wrong units? (elevations in m)"
+        )
     return h
+
+
+MAX_HEIGHT = 1e6
+"""Largest |height| accepted, m: far beyond any relief, so only wrong units or garbage reach it
+(and the spectra of larger values can overflow)."""
 
 
 def as_heights(heights: Any) -> np.ndarray:
     """``heights`` as a float array, or :class:`InputError` for non-numeric input."""
-    if np.iscomplexobj(heights) or (
-        isinstance(heights, np.ndarray) and heights.dtype.kind not in "biuf"
-    ):
-        raise InputError("heights must be a real numeric array of elevations in m")
     try:
-        return np.asarray(heights, dtype=float)
+        raw = np.asarray(heights)
+        if raw.dtype.kind not in "biuf":
+            raise TypeError(raw.dtype)
+        return np.asarray(raw, dtype=float)
     except (TypeError, ValueError, OverflowError):
-        raise InputError("heights must be a numeric array of elevations in m") from None
+        raise InputError("heights must be a real numeric array of elevations in m") from None
 
 
 def fill_gaps(

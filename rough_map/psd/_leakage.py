@@ -204,20 +204,31 @@ def write_leakage_tables(
         np.savez(fh, **tables)
 
 
+def _grid_position(w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where each waviness falls on :data:`W_GRID` (clipped to it): the lower node, the
+    fraction to the next, and which are NaN (overflowed spectra; they read as node 0)."""
+    wv = np.asarray(w, dtype=float)
+    bad = np.isnan(wv)
+    pos = (np.clip(np.where(bad, W_GRID[0], wv), W_GRID[0], W_GRID[-1]) - W_GRID[0]) / (
+        W_GRID[1] - W_GRID[0]
+    )
+    i = np.minimum(pos.astype(int), W_GRID.size - 2)
+    return i, pos - i, bad
+
+
 def interp_rows(w: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """Linear interpolation on :data:`W_GRID` of one tabulated function per row."""
-    pos = np.clip((w - W_GRID[0]) / (W_GRID[1] - W_GRID[0]), 0, W_GRID.size - 1.000001)
-    i = pos.astype(int)
-    frac = pos - i
+    """Linear interpolation on :data:`W_GRID` of one tabulated function per row (NaN where
+    ``w`` is NaN)."""
+    i, frac, bad = _grid_position(w)
     rows = np.arange(values.shape[0])
-    return (1 - frac) * values[rows, i] + frac * values[rows, i + 1]
+    out = (1 - frac) * values[rows, i] + frac * values[rows, i + 1]
+    return np.where(bad, np.nan, out)
 
 
 def leakage(n: int, window: str, waviness: np.ndarray, gridding: str = "point") -> np.ndarray:
-    """Per-ordinate log offsets (see :func:`leakage_table`), one row per waviness."""
+    """Per-ordinate log offsets (see :func:`leakage_table`), one row per waviness (NaN rows
+    where the waviness is NaN)."""
     table = leakage_table(n, window, gridding)
-    wv = np.clip(np.asarray(waviness, dtype=float), W_GRID[0], W_GRID[-1])
-    pos = (wv - W_GRID[0]) / (W_GRID[1] - W_GRID[0])
-    i = np.minimum(pos.astype(int), W_GRID.size - 2)
-    frac = (pos - i)[..., None]
-    return (1 - frac) * table[i] + frac * table[i + 1]
+    i, frac, bad = _grid_position(waviness)
+    out = (1 - frac[..., None]) * table[i] + frac[..., None] * table[i + 1]
+    return np.where(bad[..., None], np.nan, out)

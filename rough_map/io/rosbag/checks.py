@@ -20,8 +20,9 @@ from typing import Any
 
 from rough_map.errors import FileFormatError
 
-#: Largest ``metadata.yaml`` read, bytes.
-MAX_METADATA_BYTES = 1 << 20
+#: Largest ``metadata.yaml`` read, bytes (a real one holds about 1 kB per topic; ruamel, which
+#: rosbags and this module parse it with, takes about 6 s of CPU per MB).
+MAX_METADATA_BYTES = 256 << 10
 #: Deepest bracket nesting accepted in ``metadata.yaml`` (rosbags' own files use 1).
 MAX_YAML_DEPTH = 32
 #: Most storage files a ROS 2 bag may list.
@@ -144,8 +145,26 @@ def _metadata(name: str, text: str) -> tuple[str, tuple[Any, ...]]:
     for key, sub in (("duration", "nanoseconds"), ("starting_time", "nanoseconds_since_epoch")):
         _nanoseconds(path, _get(path, info, key, dict, where), sub, f"{where}{key}.")
     _nanoseconds(path, info, "message_count", where)
-    if not isinstance(info.get("files", []), list):
-        raise FileFormatError(path, "not a list", where + "files")
+    files = info.get("files", [])
+    if not isinstance(files, list) or len(files) > MAX_STORAGE_FILES:
+        raise FileFormatError(
+            path, f"not a list of at most {MAX_STORAGE_FILES} entries", where + "files"
+        )
+    for i, entry in enumerate(files):
+        at = f"{where}files[{i}]."
+        if not isinstance(entry, dict):
+            raise FileFormatError(path, "not a mapping", at[:-1])
+        name = _get(path, entry, "path", str, at)
+        if len(name) > MAX_NAME:
+            raise FileFormatError(path, "too long", at + "path")
+        for key, sub_key in (
+            ("duration", "nanoseconds"),
+            ("starting_time", "nanoseconds_since_epoch"),
+        ):
+            if key in entry:
+                _nanoseconds(path, _get(path, entry, key, dict, at), sub_key, f"{at}{key}.")
+        if "message_count" in entry:
+            _nanoseconds(path, entry, "message_count", at)
     names = _get(path, info, "relative_file_paths", list, where)
     if not 1 <= len(names) <= MAX_STORAGE_FILES:
         raise FileFormatError(
