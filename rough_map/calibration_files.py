@@ -43,6 +43,7 @@ from rough_map.errors import FileFormatError, SchemaError
 from rough_map.geometry import CAMERA_AXES_IN_VEHICLE
 
 __all__ = [
+    "MAX_IMAGE_SIDE",
     "Rectification",
     "camera_info_values",
     "check_principal_point",
@@ -52,8 +53,8 @@ __all__ = [
     "opencv_values",
 ]
 
-#: Largest image side of a calibration, px (as rough_map.config.MAX_IMAGE_SIDE).
-_MAX_SIDE = 65_536
+#: Largest image side of a calibration, px (also the schema's bound, rough_map.config).
+MAX_IMAGE_SIDE = 65_536
 
 #: Tolerance of "the identity" and "the same row" checks (dimensionless, px).
 _EPS = 1e-9
@@ -448,8 +449,10 @@ def _image_size(fs: Any, path: Path) -> tuple[int, int]:
                 path, "missing: give image_width and image_height (px)", "image_width"
             )
         size = (int(both[0]), int(both[1]))
-    if min(size) <= 0 or max(size) > _MAX_SIDE:
-        raise SchemaError(path, f"must be in 1..{_MAX_SIDE} px, got {short(size)}", "image_width")
+    if min(size) <= 0 or max(size) > MAX_IMAGE_SIDE:
+        raise SchemaError(
+            path, f"must be in 1..{MAX_IMAGE_SIDE} px, got {short(size)}", "image_width"
+        )
     return size
 
 

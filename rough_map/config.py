@@ -44,6 +44,7 @@ from pydantic_core import PydanticCustomError
 from rough_map._bounded import short
 from rough_map._files import atomic_output
 from rough_map.calibration_files import (
+    MAX_IMAGE_SIDE,
     Rectification,
     camera_info_values,
     check_principal_point,
@@ -57,9 +58,6 @@ from rough_map.geometry import CAMERA_AXES_IN_VEHICLE, pose_matrix, rotation_mat
 
 SCHEMA_VERSION = "1.0"
 """Version of the traverse format written by this release."""
-
-MAX_IMAGE_SIDE = 65_536
-"""Largest image width or height of a calibration, px."""
 
 _JSON_SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
 
