@@ -386,7 +386,7 @@ def test_shipped_noise_model_is_reproduced(tmp_path: Path) -> None:
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    fitted, _ = module.fit(tmp_path)
+    fitted, _ = module.fit(tmp_path, keep=False)
     np.testing.assert_allclose(fitted.process_noise_, SHIPPED.process_noise_, rtol=0.05)
     np.testing.assert_allclose(fitted.measurement_cov_, SHIPPED.measurement_cov_, rtol=0.05)
     np.testing.assert_allclose(fitted.error_length_, SHIPPED.error_length_, rtol=0.05)

@@ -17,8 +17,10 @@ same and compares with the shipped file, so that it cannot go stale.
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -58,13 +60,15 @@ HEADER = """\
 """
 
 
-def simulate_training(folder: Path) -> list[Path]:
-    """Simulate :data:`TRAINING` into ``folder``; the traverse folders."""
+def simulate_training(folder: Path, *, keep: bool = True) -> Iterator[Path]:
+    """Simulate :data:`TRAINING` into ``folder``, one traverse at a time; yields each
+    traverse folder. Unless ``keep``, a folder simulated here is removed once the caller
+    has moved on to the next (a traverse's clouds take about 250 MB)."""
     from rough_map.simulate.course import SensorSpec, simulate
 
-    out = []
     for seed, speed, density, noise in TRAINING:
         path = folder / f"rs-train-{seed}"
+        made = False
         if not (path / "traverse.json").is_file():
             simulate(
                 path,
@@ -76,17 +80,20 @@ def simulate_training(folder: Path) -> list[Path]:
                 sensor=SensorSpec(points_per_cell=density, noise=noise),
                 compress=True,
             )
-        out.append(path)
-    return out
+            made = True
+        yield path
+        if made and not keep:
+            shutil.rmtree(path, ignore_errors=True)
 
 
-def fit(folder: Path) -> tuple[Any, dict[str, Any]]:
+def fit(folder: Path, *, keep: bool = True) -> tuple[Any, dict[str, Any]]:
     """The fitted smoother of the training traverses (simulated into ``folder`` if not
-    there yet) and its config mapping."""
+    there yet, and removed again after their features unless ``keep``) and its config
+    mapping."""
     from rough_map.features import traverse_features
     from rough_map.filter import RoughnessSmoother
 
-    tables = [traverse_features(p) for p in simulate_training(folder)]
+    tables = [traverse_features(p) for p in simulate_training(folder, keep=keep)]
     smoother = RoughnessSmoother().fit(tables)
     training = {
         "traverses": [
@@ -124,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="rs-train-") as tmp:
         folder = args.keep or Path(tmp)
         folder.mkdir(parents=True, exist_ok=True)
-        _, config = fit(folder)
+        _, config = fit(folder, keep=args.keep is not None)
     text = config_text(config)
     if args.write:
         target = Path(__file__).resolve().parents[1] / "configs" / "roughness_smoothing.yaml"
