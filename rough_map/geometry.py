@@ -9,8 +9,9 @@ Conventions (used everywhere in rough_map):
 * camera frame: OpenCV's, x right, y down, z forward, m; a calibration's
   ``camera_to_vehicle`` 4x4 takes camera coordinates to the vehicle frame.
 
-Rotations are built with :class:`scipy.spatial.transform.Rotation` (extrinsic x-y-z Euler
-angles compose as ``Rz @ Ry @ Rx``).
+Rotations are extrinsic x-y-z Euler angles, composed as ``Rz @ Ry @ Rx`` (what
+``scipy.spatial.transform.Rotation.from_euler("xyz", ...)`` gives, written out: importing
+scipy.spatial takes 0.2-0.45 s, and the matrix is built once per frame).
 """
 
 from __future__ import annotations
@@ -65,9 +66,16 @@ def rotation_matrix(roll: float = 0.0, pitch: float = 0.0, yaw: float = 0.0) -> 
 
     With ``yaw = 0`` this is the paper's Eq. 11 (``phi`` = pitch, ``theta`` = roll).
     """
-    from scipy.spatial.transform import Rotation  # scipy.spatial: ~0.2-0.45 s
-
-    return np.asarray(Rotation.from_euler("xyz", [roll, pitch, yaw]).as_matrix(), dtype=float)
+    cr, sr = math.cos(roll), math.sin(roll)
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
 
 
 def transform_columns(

@@ -298,10 +298,15 @@ class OnlineMapper:
         return FrameUpdate(index, row, raw, posterior, label, name, area)
 
     def _level(self, row: dict[str, Any]) -> float:
-        if not row["valid"]:
-            return math.nan
-        name = roughness_level([row["R"]], self.level_names, self.level_thresholds)[0]
-        return float(self.level_names.index(name)) if name else math.nan
+        return float(self._levels([row["R"]])[0]) if row["valid"] else math.nan
+
+    def _levels(self, R: ArrayLike) -> NDArray[np.float64]:
+        """Level index per value of R (m³/rad; NaN: none), as :meth:`_level` of each."""
+        index: dict[str, float] = {}
+        for i, name in enumerate(self.level_names):
+            index.setdefault(name, float(i))
+        names = roughness_level(R, self.level_names, self.level_thresholds)
+        return np.array([index[n] if n else math.nan for n in names], dtype=float)
 
     def _classify(
         self, out: FrameOutput, x: float, y: float
@@ -373,15 +378,20 @@ class OnlineMapper:
             raise InputError(
                 f"proba must have shape ({len(rows)}, {len(self.classes)}), got {p.shape}"
             )
+        # the frames' levels and which rows of p are whole, for all frames at once
+        known = np.all(np.isfinite(p), axis=1) if self.classes else np.zeros(len(rows), bool)
+        level_of = np.full(len(rows), math.nan)
+        if levels and rows:
+            valid = np.array([bool(row["valid"]) for row in rows])
+            R = extra["R"] if "R" in extra else [r["R"] if r["valid"] else math.nan for r in rows]
+            level_of = np.where(valid, self._levels(R), math.nan)
         for i, row in enumerate(rows):
             if not row["valid"]:
                 continue
             x, y, yaw = row["x"], row["y"], row["yaw"]
-            probs = p[i] if self.classes and np.all(np.isfinite(p[i])) else None
+            probs = p[i] if known[i] else None
             rough = {k: float(v[i]) for k, v in extra.items()}
-            level = math.nan
-            if levels:
-                level = self._level({**row, **rough})
+            level = float(level_of[i])
             if probs is None and not math.isfinite(level) and not rough:
                 continue
             self.tiles.fuse_patch(x, y, yaw, probs=probs, level=level, count=False, **rough)

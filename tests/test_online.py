@@ -11,12 +11,13 @@ import pytest
 from rough_map.classify import load_terrain_model
 from rough_map.errors import FileFormatError, InputError
 from rough_map.features import FramePass, frame_jobs, iter_frames, traverse_features
-from rough_map.features.frames import FrameJob, height_sample
+from rough_map.features.frames import FrameJob, height_sample, process_frame, process_frames
 from rough_map.io.traverse import load_traverse
 from rough_map.map import fuse_traverse
 from rough_map.map.near_far import NearFarSettings
 from rough_map.map.tiles import TiledMap
 from rough_map.online import OnlineMapper
+from rough_map.patch import Extraction
 from rough_map.workflow import analyse, write_outputs
 
 
@@ -40,6 +41,23 @@ def test_features_identical_on_two_processes(small_traverse: Path) -> None:
     two = traverse_features(small_traverse, n_jobs=2)
     _same_tables(one, two)
     assert one.valid.sum() > 0
+
+
+def test_chunks_measure_each_frame_as_it_reads_alone(small_traverse: Path, model) -> None:
+    """A worker measures a chunk's patches in one batch; each frame's row and spectrum are
+    those of the frame measured alone (as the online mapper does), to the last bit."""
+    trav = load_traverse(small_traverse)
+    jobs = frame_jobs(trav)
+    settings = FramePass(Extraction.from_dict(model.extraction_), height_resolution=0.1)
+    chunked = process_frames(jobs, settings)
+    assert sum(bool(o.row["valid"]) for o in chunked) > 0
+    for out in chunked:
+        alone = process_frame(jobs[out.index], settings)
+        assert out.row.keys() == alone.row.keys()
+        for key, value in out.row.items():
+            assert value == alone.row[key] or (value != value and alone.row[key] != alone.row[key])
+        assert (out.psd is None) == (alone.psd is None)
+        assert out.psd is None or np.array_equal(out.psd, alone.psd)
 
 
 def test_frames_come_back_in_order_with_small_chunks(small_traverse: Path) -> None:

@@ -29,6 +29,15 @@ def test_eq11_matrix():
     np.testing.assert_allclose(rotation_matrix(roll=theta, pitch=phi), eq11, atol=1e-15)
 
 
+@pytest.mark.parametrize("angles", [(0.3, -0.2, 2.9), (-1.2, 0.7, -0.4), (0.0, 1.5, 3.1)])
+def test_rotation_matrix_is_extrinsic_xyz_euler(angles):
+    """The written-out matrix is scipy's Rotation.from_euler("xyz", ...)."""
+    from scipy.spatial.transform import Rotation
+
+    expected = Rotation.from_euler("xyz", angles).as_matrix()
+    np.testing.assert_allclose(rotation_matrix(*angles), expected, atol=1e-15)
+
+
 def test_grid_means_and_geometry():
     spec = PatchSpec(ahead=1.0, size=0.064, spacing=0.008)  # 8 x 8 cells
     assert spec.n == 8

@@ -275,3 +275,20 @@ def test_cached_plans_cannot_be_changed():
         before.fit_mask[0] = not before.fit_mask[0]  # a view of the plan's mask
     again = psd.patch_roughness(h, B)
     assert (again.R, again.w) == (before.R, before.w)
+
+
+def test_each_patch_takes_its_own_floor_or_one_for_all() -> None:
+    h = np.stack(
+        [iso8608.synthesize_surface((32, 64), 0.008, 64e-6, -2.3, seed=s) for s in range(3)]
+    )
+    with pytest.raises(InputError, match=r"noise_psd has shape \(2,\); give one floor"):
+        psd.patch_roughness_each(h, 0.008, noise_psd=[1e-9, 1e-9], subtract_noise=True)
+    with pytest.raises(InputError, match="noise_psd must be finite floors"):
+        psd.patch_roughness_each(h, 0.008, noise_psd=[1e-9, np.nan, 1e-9], subtract_noise=True)
+    with pytest.raises(InputError, match="unexpected keyword"):
+        psd.patch_roughness_each(h, 0.008, windows="hann")
+    # a floor above the whole spectrum refuses that patch only
+    out = psd.patch_roughness_each(h, 0.008, noise_psd=[1e-9, 1.0, 1e-9], subtract_noise=True)
+    assert isinstance(out[1], PatchError) and "noise floor 1 m^3/rad" in str(out[1])
+    assert [type(r).__name__ for r in out] == ["PatchRoughness", "PatchError", "PatchRoughness"]
+    assert out[0].noise_psd == 1e-9 and out[0].noise_subtracted

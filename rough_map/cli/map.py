@@ -76,6 +76,9 @@ def default_model() -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
+    from rough_map.features.frames import start_workers
+
+    start_workers(args.jobs)  # they import rough_map while this process does
     from rough_map.workflow import analyse, summary, write_outputs
 
     out: Path = args.out

@@ -132,8 +132,12 @@ def _dataset_tags(grid: GridMap) -> dict[str, str]:
     return tags
 
 
+#: GDAL threads compressing a file's tiles (the file is the same bytes for any number).
+_COMPRESS_THREADS = 2
+
+
 def _creation_options(profile: Mapping[str, Any], driver: str) -> dict[str, Any]:
-    opts: dict[str, Any] = {"COMPRESS": profile["compress"]}
+    opts: dict[str, Any] = {"COMPRESS": profile["compress"], "NUM_THREADS": _COMPRESS_THREADS}
     bs = int(profile["blocksize"])
     if driver == "COG":
         opts.update(

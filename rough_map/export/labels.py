@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import math
 from pathlib import Path
 
 import numpy as np
@@ -62,26 +63,27 @@ def write_labels(features: FeatureTable, prediction: TerrainPrediction, path: Pa
     defect = pred.defect if pred.defect is not None else np.zeros(len(f), dtype=bool)
     nan = np.full(len(f), np.nan)
     smoothed = [np.asarray(f.columns.get(c, nan), dtype=float) for c in SMOOTH_COLUMNS]
+    # a column at a time: the same text as formatting each value (tolist gives the same
+    # floats; a str column's values are written as they are)
+    t, x, y = (np.asarray(f[c]).tolist() for c in ("t", "x", "y"))
+    columns = [
+        [int(v) for v in np.asarray(f["frame"]).tolist()],
+        [f"{v:.6g}" for v in t],
+        [f"{v:.4f}" for v in x],
+        [f"{v:.4f}" for v in y],
+        [f"{v:.4f}" for v in np.asarray(pred.distance).tolist()],
+        ["true" if v else "false" for v in np.asarray(pred.valid).tolist()],
+        list(f["label"]),
+        list(pred.raw_class),
+        ["" if not math.isfinite(v) else f"{v:.4f}" for v in np.asarray(raw_p).tolist()],
+        list(pred.filtered_class),
+        [f"{v:.4f}" for v in np.asarray(filt_p).tolist()],
+        list(pred.level),
+        ["true" if v else "false" for v in np.asarray(defect).tolist()],
+        *(["" if not math.isfinite(v) else f"{v:.6g}" for v in col.tolist()] for col in smoothed),
+    ]
     with atomic_output(path) as tmp, open(tmp, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(LABEL_COLUMNS)
-        for i in range(len(f)):
-            w.writerow(
-                [
-                    int(f["frame"][i]),
-                    f"{f['t'][i]:.6g}",
-                    f"{f['x'][i]:.4f}",
-                    f"{f['y'][i]:.4f}",
-                    f"{pred.distance[i]:.4f}",
-                    "true" if pred.valid[i] else "false",
-                    f["label"][i],
-                    pred.raw_class[i],
-                    "" if not np.isfinite(raw_p[i]) else f"{raw_p[i]:.4f}",
-                    pred.filtered_class[i],
-                    f"{filt_p[i]:.4f}",
-                    pred.level[i],
-                    "true" if defect[i] else "false",
-                    *("" if not np.isfinite(v[i]) else f"{v[i]:.6g}" for v in smoothed),
-                ]
-            )
+        w.writerows(zip(*columns, strict=True))
     return path

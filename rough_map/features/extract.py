@@ -20,11 +20,12 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import Any
+from collections.abc import Sequence
+from typing import Any, NamedTuple
 
 import numpy as np
 
-from rough_map.errors import InputError, RoughMapError
+from rough_map.errors import InputError, PatchError, RoughMapError
 from rough_map.features.table import (
     BOOL_COLUMNS,
     COLUMNS,
@@ -34,14 +35,17 @@ from rough_map.features.table import (
 )
 from rough_map.patch import Extraction, GriddedPatch, PatchSpec, grid_points, points_in_patch
 from rough_map.patch._params import check_int, check_real
-from rough_map.psd import PatchRoughness, patch_roughness
+from rough_map.psd import PatchRoughness, patch_roughness, patch_roughness_each
 
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "GriddedFrame",
     "cloud_roughness",
     "feature_table",
     "frame_features",
+    "grid_frame",
+    "measure_frames",
 ]
 
 #: A frame's scalar features (a row of :data:`~rough_map.features.table.COLUMNS`), its
@@ -89,6 +93,37 @@ def frame_features(
     psd : ndarray or None
         Patch-mean PSD in m³/rad (None when invalid).
     """
+    return measure_frames(
+        [
+            grid_frame(
+                points, extraction, roll=roll, pitch=pitch, min_points=min_points, min_fill=min_fill
+            )
+        ]
+    )[0]
+
+
+class GriddedFrame(NamedTuple):
+    """A frame between :func:`grid_frame` and :func:`measure_frames`: its row so far, its
+    gridded patch (None when the frame is already invalid) and the extraction to measure
+    it with."""
+
+    row: dict[str, Any]
+    grid: GriddedPatch | None
+    extraction: Extraction
+
+
+def grid_frame(
+    points: np.ndarray,
+    extraction: Extraction | PatchSpec | None = None,
+    *,
+    roll: float | None = None,
+    pitch: float | None = None,
+    min_points: int = 2000,
+    min_fill: float = 0.7,
+) -> GriddedFrame:
+    """The first half of :func:`frame_features` (same parameters): cut and grid the patch,
+    and decide whether it has enough points and filled cells to be measured. The points
+    are not needed after it."""
     ex = _as_extraction(extraction)
     check_int("min_points", min_points, low=0, high=2**62, unit="points")
     check_real("min_fill", min_fill, "", low=0.0, high=1.0)
@@ -100,7 +135,7 @@ def frame_features(
         grid = grid_points(points, ex.patch, roll=roll, pitch=pitch, min_points=min_points)
     except RoughMapError as exc:
         row["reason"] = f"too few points: {exc}" if "points" in str(exc) else str(exc)
-        return row, None, None
+        return GriddedFrame(row, None, ex)
     row.update(
         n_points=grid.n_points,
         fill=grid.fill_fraction,
@@ -110,13 +145,54 @@ def frame_features(
     )
     if grid.fill_fraction < min_fill:
         row["reason"] = f"too many gaps: {grid.fill_fraction:.0%} of cells filled"
-        return row, None, None
-    try:
-        lon = _fit(grid, ex, grid.heights)
-        lat = _fit(grid, ex, grid.heights.T)
-    except RoughMapError as exc:
-        row["reason"] = str(exc)
-        return row, None, None
+        return GriddedFrame(row, None, ex)
+    return GriddedFrame(row, grid, ex)
+
+
+def measure_frames(frames: Sequence[GriddedFrame]) -> list[FrameResult]:
+    """The second half of :func:`frame_features`: the roughness of each gridded frame along
+    the direction of travel and across it, for many frames in one vectorised pass.
+
+    The patches are stacked by estimator settings (step, shape, noise floor subtracted or
+    not) and measured with :func:`rough_map.psd.patch_roughness_each`, which gives a patch
+    the same numbers alone or in any batch: a traverse's frames measured in chunks and one
+    frame measured by the online mapper agree to the last bit.
+    """
+    results: list[FrameResult | None] = [None] * len(frames)
+    groups: dict[tuple[Any, ...], list[tuple[int, GriddedPatch]]] = {}
+    for i, (row, grid, ex) in enumerate(frames):
+        if grid is None:
+            results[i] = (row, None, None)
+            continue
+        opts = _options(grid, ex)
+        key = (ex.patch.spacing, grid.heights.shape, *opts.values())
+        groups.setdefault(key, []).append((i, grid))
+    for (spacing, _, method, subtract, gridding), members in groups.items():
+        # each frame's profiles along the direction of travel (rows), then across it
+        stack = np.stack([h for _, g in members for h in (g.heights, g.heights.T)])
+        floors = np.repeat([g.noise_psd for _, g in members], 2)
+        outcomes = patch_roughness_each(
+            stack,
+            spacing,
+            method=method,
+            noise_psd=floors if subtract else None,
+            subtract_noise=subtract,
+            gridding=gridding,
+        )
+        for k, (i, _) in enumerate(members):
+            results[i] = _measured(frames[i].row, outcomes[2 * k], outcomes[2 * k + 1])
+    return [r for r in results if r is not None]
+
+
+def _measured(
+    row: dict[str, Any], lon: PatchRoughness | PatchError, lat: PatchRoughness | PatchError
+) -> FrameResult:
+    """A frame's result from its two estimates (or the first refusal)."""
+    for outcome in (lon, lat):
+        if isinstance(outcome, PatchError):
+            row["reason"] = str(outcome)
+            return row, None, None
+    assert isinstance(lon, PatchRoughness) and isinstance(lat, PatchRoughness)
     row.update(
         valid=True,
         R=lon.R,
@@ -184,19 +260,22 @@ def _as_extraction(extraction: Extraction | PatchSpec | None) -> Extraction:
     return extraction
 
 
+def _options(grid: GriddedPatch, ex: Extraction) -> dict[str, Any]:
+    """The estimator's options for a gridded patch other than its floor: ``ex``'s method,
+    whether the floor is subtracted (when ``ex`` says so and the patch has an estimate of
+    it) and the gridding."""
+    return {
+        "method": ex.method,
+        "subtract_noise": ex.subtract_noise and math.isfinite(grid.noise_psd),
+        "gridding": grid.gridding,
+    }
+
+
 def _fit(grid: GriddedPatch, ex: Extraction, heights: np.ndarray) -> PatchRoughness:
-    """:func:`rough_map.psd.patch_roughness` of a gridded patch's rows (``heights``: the
-    grid's heights, or their transpose for the lateral direction), with the noise floor
-    subtracted when ``ex`` says so and the patch has an estimate of it."""
-    subtract = ex.subtract_noise and math.isfinite(grid.noise_psd)
-    rough = patch_roughness(
-        heights,
-        ex.patch.spacing,
-        method=ex.method,
-        noise_psd=grid.noise_psd if subtract else None,
-        subtract_noise=subtract,
-        gridding=grid.gridding,
-    )
+    """:func:`rough_map.psd.patch_roughness` of a gridded patch's rows (``heights``)."""
+    opts = _options(grid, ex)
+    floor = grid.noise_psd if opts["subtract_noise"] else None
+    rough = patch_roughness(heights, ex.patch.spacing, noise_psd=floor, **opts)
     assert isinstance(rough, PatchRoughness)  # one patch, one estimate
     return rough
 

@@ -21,14 +21,14 @@ import os
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
 from rough_map.config import StereoCalibration
 from rough_map.errors import FileFormatError, InputError
-from rough_map.features.extract import FrameResult, frame_features
+from rough_map.features.extract import GriddedFrame, grid_frame, measure_frames
 from rough_map.geometry import rotation_matrix, transform_columns
 from rough_map.io.pointcloud import read_cloud
 from rough_map.io.traverse import Traverse
@@ -50,6 +50,7 @@ __all__ = [
     "process_frames",
     "process_points",
     "read_points",
+    "start_workers",
 ]
 
 #: Where the points of a frame come from: the frame's cloud, its stereo pair, or the cloud
@@ -230,34 +231,55 @@ def process_points(
 ) -> FrameOutput:
     """:func:`process_frame` of points already read (vehicle frame, m; None: an invalid
     row saying ``reason``)."""
-    row: dict[str, Any]
+    return _measure([_grid_stage(points, job, settings, reason)])[0]
+
+
+class _Gridded(NamedTuple):
+    """A frame after its points were read: gridded, its heights sampled (the points are
+    not kept)."""
+
+    job: FrameJob
+    frame: GriddedFrame
+    heights: HeightSample | None
+
+
+def _grid_stage(
+    points: NDArray[np.float64] | None, job: FrameJob, settings: FramePass, reason: str
+) -> _Gridded:
     if points is None:
-        row, omega, psd = {"valid": False, "reason": reason, "n_points": 0}, None, None
+        row = {"valid": False, "reason": reason, "n_points": 0}
+        frame = GriddedFrame(row, None, settings.extraction)
     elif not settings.features:
-        row, omega, psd = {"valid": False, "reason": "not measured", "n_points": 0}, None, None
+        row = {"valid": False, "reason": "not measured", "n_points": 0}
+        frame = GriddedFrame(row, None, settings.extraction)
     else:
-        row, omega, psd = _features(points, job, settings)
-    x, y, _, _, _, yaw = job.pose
-    row.update(frame=job.index, t=job.t, x=x, y=y, yaw=yaw, label=job.label)
+        ex = settings.extraction
+        roll = pitch = None
+        if ex.use_imu and job.imu is not None:
+            roll, pitch = job.imu
+        frame = grid_frame(
+            points,
+            ex,
+            roll=roll,
+            pitch=pitch,
+            min_points=settings.min_points,
+            min_fill=settings.min_fill,
+        )
     heights = None
     if points is not None and settings.height_resolution is not None:
         heights = height_sample(points, job, settings.height_resolution, settings.height_points)
-    return FrameOutput(job.index, row, omega, psd, heights)
+    return _Gridded(job, frame, heights)
 
 
-def _features(points: NDArray[np.float64], job: FrameJob, settings: FramePass) -> FrameResult:
-    ex = settings.extraction
-    roll = pitch = None
-    if ex.use_imu and job.imu is not None:
-        roll, pitch = job.imu
-    return frame_features(
-        points,
-        ex,
-        roll=roll,
-        pitch=pitch,
-        min_points=settings.min_points,
-        min_fill=settings.min_fill,
-    )
+def _measure(gridded: Sequence[_Gridded]) -> list[FrameOutput]:
+    """The outputs of gridded frames, their patches measured in one batch."""
+    results = measure_frames([g.frame for g in gridded])
+    out = []
+    for g, (row, omega, psd) in zip(gridded, results, strict=True):
+        x, y, _, _, _, yaw = g.job.pose
+        row.update(frame=g.job.index, t=g.job.t, x=x, y=y, yaw=yaw, label=g.job.label)
+        out.append(FrameOutput(g.job.index, row, omega, psd, g.heights))
+    return out
 
 
 def _uses_stereo(job: FrameJob, settings: FramePass) -> bool:
@@ -320,7 +342,9 @@ def height_sample(
 
 
 def process_frames(jobs: Sequence[FrameJob], settings: FramePass) -> list[FrameOutput]:
-    """:func:`process_frame` of each job, single-threaded (the unit of work of a worker)."""
+    """:func:`process_frame` of each job, single-threaded (the unit of work of a worker):
+    each frame's points are read, gridded and dropped, then all the patches are measured
+    in one vectorised pass (the same numbers as one frame at a time)."""
     from threadpoolctl import threadpool_limits
 
     stereo = settings.source != "cloud" and any(j.left is not None for j in jobs)
@@ -329,7 +353,30 @@ def process_frames(jobs: Sequence[FrameJob], settings: FramePass) -> list[FrameO
 
         cv2.setNumThreads(1)
     with threadpool_limits(limits=1, user_api="blas"):
-        return [process_frame(job, settings) for job in jobs]
+        gridded = []
+        for job in jobs:
+            points, reason = read_points(job, settings)
+            gridded.append(_grid_stage(points, job, settings, reason))
+        return _measure(gridded)
+
+
+def start_workers(n_jobs: int) -> None:
+    """Start the worker processes of a coming frame pass (``n_jobs`` as
+    :func:`iter_frames` takes it) now, so that they import rough_map while this process is
+    still loading the model; nothing for one process. :func:`iter_frames` takes them over."""
+    workers = check_jobs(n_jobs)
+    if workers == 1:
+        return
+    from joblib.externals.loky import get_reusable_executor
+
+    executor = get_reusable_executor(max_workers=workers - 1)
+    for _ in range(workers - 1):
+        executor.submit(_ready)
+
+
+def _ready() -> bool:
+    """A worker's first task: unpickling it imports this module."""
+    return True
 
 
 def check_jobs(n_jobs: int) -> int:
@@ -389,9 +436,14 @@ def _run_chunks(
     chunks: list[list[FrameJob]], settings: FramePass, workers: int
 ) -> Iterator[list[FrameOutput]]:
     """The outputs of each chunk, in order, from ``workers`` processes: this one and
-    ``workers - 1`` joblib (loky) workers. This process takes every ``workers``-th chunk
-    itself, between handing results on, while the workers run ahead on theirs; so ``-j 2``
-    costs one extra process, not two."""
+    ``workers - 1`` joblib (loky) workers, so ``-j 2`` costs one extra process, not two.
+
+    The workers always have chunks queued. This process hands the results on in order
+    (the caller fuses them into the map between two chunks) and, whenever the next result
+    is not ready yet, takes the next unstarted chunk itself instead of waiting. So the
+    share of chunks it computes adapts to what the caller does with them: a caller with
+    little work leaves this process about ``1 / workers`` of the chunks; a busy one fewer.
+    The outputs are those of :func:`process_frames` whichever process ran them."""
     if workers == 1 or len(chunks) <= 1:
         for c in chunks:
             yield process_frames(c, settings)
@@ -401,20 +453,24 @@ def _run_chunks(
     executor = get_reusable_executor(max_workers=workers - 1)
     ahead = 2 * (workers - 1)  # chunks queued on the workers
     futures: dict[int, Any] = {}
-    mine = [k for k in range(len(chunks)) if k % workers == 0]
-    theirs = iter(k for k in range(len(chunks)) if k % workers != 0)
+    mine: dict[int, list[FrameOutput]] = {}  # done here, ahead of their turn
+    unstarted = iter(range(len(chunks)))
     try:
         for k in range(len(chunks)):
-            while len(futures) < ahead:
-                nxt = next(theirs, None)
+            while k not in mine:
+                while len(futures) < ahead:
+                    nxt = next(unstarted, None)
+                    if nxt is None:
+                        break
+                    futures[nxt] = executor.submit(process_frames, chunks[nxt], settings)
+                future = futures.get(k)
+                if future is None or future.done() or len(mine) >= ahead:
+                    break  # ready, or this process is far enough ahead: wait for it
+                nxt = next(unstarted, None)
                 if nxt is None:
                     break
-                futures[nxt] = executor.submit(process_frames, chunks[nxt], settings)
-            if k in futures:
-                yield futures.pop(k).result()
-            else:
-                assert k in mine
-                yield process_frames(chunks[k], settings)
+                mine[nxt] = process_frames(chunks[nxt], settings)
+            yield mine.pop(k) if k in mine else futures.pop(k).result()
     finally:
         for f in futures.values():
             f.cancel()

@@ -33,17 +33,16 @@ from rough_map.map.layers import (
     level_indices,
     update_estimates,
 )
-from rough_map.map.state import HEIGHT_LAYERS
 from rough_map.patch import PatchSpec
 
 log = logging.getLogger(__name__)
 
 __all__ = [
-    "changed_layers",
     "fuse_cell_probabilities",
     "fuse_patch",
     "fuse_traverse",
     "log_fused",
+    "patch_sums",
 ]
 
 
@@ -117,39 +116,80 @@ def fuse_patch(
     if cells.size == 0:
         return cells
     rows, cols = cells[:, 0], cells[:, 1]
-    if count:
-        grid["count"][rows, cols] += 1.0
+    sums = patch_sums(
+        grid.attrs.get("class_names", ()),
+        grid.attrs.get("level_names", ()),
+        R=R,
+        w=w,
+        sigma_R=sigma_R,
+        sigma_w=sigma_w,
+        probs=probs,
+        level=level,
+        count=count,
+    )
+    for name, value in sums:
+        if name.startswith("votes_"):
+            add_vote_layers(grid)
+        grid[name][rows, cols] += value
     if math.isfinite(t):
         grid["last_seen"][rows, cols] = np.fmax(grid["last_seen"][rows, cols], t)
-    if math.isfinite(R) and R > 0 and math.isfinite(w):
-        ln_r = math.log(R)
-        grid["n_roughness"][rows, cols] += 1.0
-        grid["sum_lnR"][rows, cols] += ln_r
-        grid["sum_lnR2"][rows, cols] += ln_r * ln_r
-        grid["sum_w"][rows, cols] += w
-        grid["sum_w2"][rows, cols] += w * w
-        if math.isfinite(sigma_R) and math.isfinite(sigma_w):
-            grid["n_sigma"][rows, cols] += 1.0
-            grid["sum_rel_var_R"][rows, cols] += (sigma_R / R) ** 2
-            grid["sum_var_w"][rows, cols] += sigma_w**2
-    if probs is not None:
-        if not grid.attrs.get("class_names"):
-            raise InputError("probs given but the map has no class_names; call init_layers")
-        p = _check_probs(grid, np.asarray(probs, dtype=float).reshape(1, -1), 1)
-        if np.all(np.isfinite(p)):
-            _add_evidence(
-                grid,
-                "",
-                rows,
-                cols,
-                np.broadcast_to(p, (rows.size, p.shape[1])),
-                np.ones(rows.size),
-            )
-    if math.isfinite(level):
-        _add_vote(grid, rows, cols, level)
     if update:
         update_estimates(grid, _window(cells))
     return cells
+
+
+def patch_sums(
+    class_names: Sequence[str],
+    level_names: Sequence[str],
+    *,
+    t: float = math.nan,
+    R: float = math.nan,
+    w: float = math.nan,
+    sigma_R: float = math.nan,
+    sigma_w: float = math.nan,
+    probs: ArrayLike | None = None,
+    level: float = math.nan,
+    count: bool = True,
+) -> list[tuple[str, float]]:
+    """What one patch adds to each cell it covers (:func:`fuse_patch`'s observation):
+    ``(layer, value)`` pairs; ``t`` (s) goes into ``last_seen`` by a maximum, not here.
+
+    Raises
+    ------
+    InputError
+        ``probs`` without ``class_names``, or not one probability per class; a ``level``
+        that is not an index of ``level_names``.
+    """
+    sums: list[tuple[str, float]] = [("count", 1.0)] if count else []
+    if math.isfinite(R) and R > 0 and math.isfinite(w):
+        ln_r = math.log(R)
+        sums += [
+            ("n_roughness", 1.0),
+            ("sum_lnR", ln_r),
+            ("sum_lnR2", ln_r * ln_r),
+            ("sum_w", w),
+            ("sum_w2", w * w),
+        ]
+        if math.isfinite(sigma_R) and math.isfinite(sigma_w):
+            sums += [
+                ("n_sigma", 1.0),
+                ("sum_rel_var_R", (sigma_R / R) ** 2),
+                ("sum_var_w", sigma_w**2),
+            ]
+    if probs is not None:
+        if not class_names:
+            raise InputError("probs given but the map has no class_names; call init_layers")
+        p = _normalised(len(class_names), np.asarray(probs, dtype=float).reshape(1, -1), 1)
+        if np.all(np.isfinite(p)):
+            sums += [(f"evidence_{c}", p[0, k]) for k, c in enumerate(class_names)]
+    if math.isfinite(level):
+        k = int(round(level))
+        if not (0 <= k < len(level_names)) or k != level:
+            raise InputError(
+                f"level must be an index 0..{len(level_names) - 1} or NaN, got {level!r}"
+            )
+        sums.append((f"votes_{level_names[k]}", 1.0))
+    return sums
 
 
 def fuse_cell_probabilities(
@@ -238,7 +278,11 @@ def _check_cells(grid: GridMap, cells: ArrayLike) -> NDArray[np.int64]:
 
 
 def _check_probs(grid: GridMap, p: NDArray, n: int) -> NDArray:
-    k = len(grid.attrs.get("class_names", ()))
+    return _normalised(len(grid.attrs.get("class_names", ())), p, n)
+
+
+def _normalised(k: int, p: NDArray, n: int) -> NDArray:
+    """Probability rows (one or ``n`` of ``k`` classes) scaled to sum 1 (NaN: a row of 0)."""
     if p.ndim == 1:
         p = p.reshape(1, -1)
     if p.ndim != 2 or p.shape[1] != k or p.shape[0] not in (1, n):
@@ -255,15 +299,6 @@ def _add_evidence(
 ) -> None:
     for k, c in enumerate(grid.attrs["class_names"]):
         np.add.at(grid[f"{prefix}evidence_{c}"], (rows, cols), weight * p[:, k])
-
-
-def _add_vote(grid: GridMap, rows: NDArray, cols: NDArray, level: float) -> None:
-    names = grid.attrs["level_names"]
-    k = int(round(level))
-    if not (0 <= k < len(names)) or k != level:
-        raise InputError(f"level must be an index 0..{len(names) - 1} or NaN, got {level!r}")
-    add_vote_layers(grid)
-    grid[f"votes_{names[k]}"][rows, cols] += 1.0
 
 
 def add_vote_layers(grid: GridMap) -> None:
@@ -459,27 +494,3 @@ def log_fused(
             grid.shape,
             resolution,
         )
-
-
-def changed_layers(layers: Sequence[str], observation: dict[str, Any]) -> list[str]:
-    """The layers that fusing ``observation`` (:func:`rough_map.map.fusion.fuse_patch`'s
-    keywords) can change: the others stay zero in a scratch grid and need no adding."""
-    roughness = math.isfinite(observation.get("R", math.nan))
-    counted = observation.get("count", True)
-    out = []
-    for name in layers:
-        if name.startswith(("evidence_", "far_")):
-            keep = observation.get("probs") is not None and name.startswith("evidence_")
-        elif name.startswith("votes_"):
-            keep = math.isfinite(observation.get("level", math.nan))
-        elif name in ("count", "last_seen"):
-            keep = (
-                bool(counted) if name == "count" else math.isfinite(observation.get("t", math.nan))
-            )
-        elif name in HEIGHT_LAYERS:  # heights are added on their own
-            keep = False
-        else:  # the roughness sums
-            keep = roughness
-        if keep:
-            out.append(name)
-    return out

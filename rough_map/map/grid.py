@@ -193,6 +193,19 @@ class GridMap:
         self._info[name] = LayerInfo(units, description, float(fill), kind, tuple(categories))
         return arr
 
+    def add_layer_as(self, name: str, info: LayerInfo, data: ArrayLike | None = None) -> None:
+        """Create layer ``name`` as ``info`` describes it (filled with its fill, or
+        ``data``), e.g. a layer of another map."""
+        self.add_layer(
+            name,
+            units=info.units,
+            description=info.description,
+            fill=info.fill,
+            kind=info.kind,
+            categories=info.categories,
+            data=data,
+        )
+
     def __getitem__(self, name: str) -> NDArray[np.float64]:
         """The array of layer ``name``, shape :attr:`shape`, in the layer's units
         (:meth:`units`); a view that writes go through to."""
@@ -292,6 +305,14 @@ class GridMap:
         """A deep copy."""
         out = GridMap(self._geometry, attrs=self.attrs)
         out._data = {k: v.copy() for k, v in self._data.items()}
+        out._info = dict(self._info)
+        return out
+
+    def shallow_copy(self) -> GridMap:
+        """A new map holding the same arrays (a write into a layer shows in both; layers
+        added or dropped, in one only)."""
+        out = GridMap(self._geometry, attrs=self.attrs)
+        out._data = dict(self._data)
         out._info = dict(self._info)
         return out
 

@@ -34,6 +34,7 @@ __all__ = [
     "STATE_FORMAT",
     "add_elevation_layer",
     "iter_state_tiles",
+    "jsonable_attrs",
     "read_state_meta",
     "write_state",
 ]
@@ -62,6 +63,18 @@ def add_elevation_layer(grid: GridMap) -> None:
         grid.add_layer(
             "elevation", units="m", description="mean terrain height (world z)", data=elev
         )
+
+
+def jsonable_attrs(attrs: dict[str, Any]) -> dict[str, Any]:
+    """The entries of a map's ``attrs`` that JSON holds as they are (text, numbers, flags,
+    lists of them), for a state's ``meta.json``."""
+    out: dict[str, Any] = {}
+    for k, v in attrs.items():
+        if isinstance(v, str | int | float | bool) or v is None:
+            out[k] = v
+        elif isinstance(v, tuple | list) and all(isinstance(x, str | int | float) for x in v):
+            out[k] = list(v)
+    return out
 
 
 def write_state(path: PathLike, meta: dict[str, Any], tiles: Iterable[StateTile]) -> Path:

@@ -3,7 +3,8 @@
 :class:`TiledMap` holds the accumulator layers of :mod:`rough_map.map.layers` in tiles of
 ``tile_cells`` x ``tile_cells`` cells. Patches and height samples are fused into the tiles
 they touch; :meth:`TiledMap.evict` writes the tiles far from the vehicle to a folder and
-forgets them, and a tile that is needed again is read back. :meth:`TiledMap.merged` puts
+forgets them, and a tile that is needed again is read back (and, left unchanged, is not
+written again: :mod:`rough_map.map.tile_files`). :meth:`TiledMap.merged` puts
 their estimates (not their sums) into one :class:`~rough_map.map.grid.GridMap` at the end.
 Fusion only adds to sums (and ``last_seen`` is a max), so the tiled map equals the one fused
 in a single grid, bit for bit.
@@ -22,6 +23,7 @@ import shutil
 import tempfile
 import weakref
 from collections.abc import Iterator, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -31,8 +33,8 @@ from numpy.typing import NDArray
 from rough_map._files import PathLike, clean_dead_temp_dirs, write_error
 from rough_map.config import Crs
 from rough_map.errors import FileFormatError, InputError
-from rough_map.map.footprints import patch_corners
-from rough_map.map.fusion import add_vote_layers, changed_layers, fuse_patch
+from rough_map.map.footprints import lattice_patch_box, patch_bounds
+from rough_map.map.fusion import add_vote_layers, patch_sums
 from rough_map.map.grid import GridMap
 from rough_map.map.grid_geometry import GridGeometry
 from rough_map.map.layers import LEVEL_NAMES, init_layers, update_estimates
@@ -41,9 +43,11 @@ from rough_map.map.state import (
     StateTile,
     add_elevation_layer,
     iter_state_tiles,
+    jsonable_attrs,
     read_state_meta,
     write_state,
 )
+from rough_map.map.tile_files import LATEST, by_tile, data_part, read_tile, used_window, write_tile
 from rough_map.patch import PatchSpec
 
 log = logging.getLogger(__name__)
@@ -54,9 +58,6 @@ __all__ = ["COUNTS", "LATEST", "TiledMap", "is_accumulator"]
 COUNTS = ("count", "far_count")
 #: Prefix of the temporary folder of a map's tiles, followed by the process id.
 _SPILL_PREFIX = "rough_map_tiles_"
-
-#: Layers holding the latest time seen (fused by a maximum).
-LATEST = ("last_seen", "far_last_seen")
 
 
 def is_accumulator(grid: GridMap, name: str) -> bool:
@@ -111,7 +112,9 @@ class TiledMap:
         self.spec = spec or PatchSpec()
         self.tile_cells = tile_cells
         self._tiles: dict[tuple[int, int], GridMap] = {}
+        # tiles with a file on disk, and those in memory unchanged since read (not rewritten)
         self._spilled: set[tuple[int, int]] = set()
+        self._clean: set[tuple[int, int]] = set()
         self.groups: tuple[str, ...] = ("near",)
         self._template: list[tuple[str, Any]] | None = None
         self._attrs: dict[str, Any] = {}
@@ -177,7 +180,7 @@ class TiledMap:
             self._attrs = dict(grid.attrs)
         grid = GridMap(geometry, attrs=self._attrs)
         for name, i in self._template:
-            _copy_layer(grid, name, i)
+            grid.add_layer_as(name, i)
         return grid
 
     def _init_layers(self, grid: GridMap) -> None:
@@ -189,21 +192,18 @@ class TiledMap:
             groups=self.groups,
         )
 
-    def tile(self, key: tuple[int, int]) -> GridMap:
-        """The tile ``key``: from memory, read back from disk, or new."""
+    def tile(self, key: tuple[int, int], *, write: bool = True) -> GridMap:
+        """The tile ``key``: from memory, read back from disk, or new. Without ``write``
+        the caller must not change it (it then goes without being written again)."""
         grid = self._tiles.get(key)
-        if grid is not None:
-            return grid
-        grid = self._blank(self._tile_geometry(key))
-        if key in self._spilled:
-            with np.load(self._path(key)) as saved:
-                r0, r1, c0, c1 = (int(v) for v in saved["_window"])
-                for name in saved.files:
-                    if name in grid:
-                        grid[name][r0:r1, c0:c1] = saved[name]
-            self._spilled.discard(key)
-            self._path(key).unlink()
-        self._tiles[key] = grid
+        if grid is None:
+            grid = self._blank(self._tile_geometry(key))
+            if key in self._spilled:
+                read_tile(self._path(key), grid)
+                self._clean.add(key)
+            self._tiles[key] = grid
+        if write:
+            self._clean.discard(key)
         return grid
 
     def add_group(self, group: str) -> None:
@@ -212,6 +212,7 @@ class TiledMap:
             return
         self.groups = (*self.groups, group)
         self._template = None
+        self._clean.clear()  # the tiles in memory change
         for tile in self._tiles.values():
             init_layers(tile, self.class_names, groups=(group,))
             for name in tile.layers:
@@ -219,7 +220,7 @@ class TiledMap:
                     tile.drop_layer(name)
 
     def _path(self, key: tuple[int, int]) -> Path:
-        return self._dir / f"tile_{key[0]}_{key[1]}.npz"
+        return self._dir / f"tile_{key[0]}_{key[1]}.tile"
 
     def _keys_over(self, bounds: tuple[float, float, float, float]) -> Iterator[tuple[int, int]]:
         side = self.tile_size
@@ -245,26 +246,55 @@ class TiledMap:
 
     def cover(self, x: float, y: float, yaw: float) -> None:
         """Make :meth:`merged` cover the patch seen from this pose (m, rad), fused or not."""
-        corners = patch_corners(x, y, yaw, self.spec)
-        self._grow((*corners.min(axis=0), *corners.max(axis=0)))
+        self._grow(patch_bounds(x, y, yaw, self.spec))
 
     def fuse_patch(self, x: float, y: float, yaw: float, **observation: Any) -> int:
         """Fuse one frame's patch (as :func:`rough_map.map.fusion.fuse_patch`: ``t``,
         ``R``, ``w``, ``sigma_R``, ``sigma_w``, ``probs``, ``level``, ``count``) into the
         tiles it covers; returns how many cells it covered.
 
-        The patch is fused into a scratch grid around it, which is then added to the
-        tiles: one fusion whatever the number of tiles the patch straddles."""
-        corners = patch_corners(x, y, yaw, self.spec)
-        bounds = (*corners.min(axis=0), *corners.max(axis=0))
+        Each cell the patch covers gets the patch's sums
+        (:func:`rough_map.map.fusion.patch_sums`) added, as
+        :func:`~rough_map.map.fusion.fuse_patch` adds them in a grid covering the patch."""
+        if not all(math.isfinite(v) for v in (x, y, yaw)):
+            raise InputError(f"pose must be finite (x, y in m, yaw in rad), got {(x, y, yaw)}")
+        bounds, r0, c0, inside = lattice_patch_box(x, y, yaw, self.spec, self.resolution)
         self._grow(bounds)
-        scratch = self._blank(GridGeometry.covering(bounds, self.resolution, crs=self.geometry.crs))
-        cells = fuse_patch(
-            scratch, x, y, yaw, spec=self.spec, grow=False, update=False, **observation
-        )
-        if cells.size:
-            self._add_grid(scratch, changed_layers(scratch.layers, observation))
-        return int(cells.shape[0])
+        sums = patch_sums(self.class_names, self.level_names, **observation)
+        t = observation.get("t", math.nan)
+        if inside.size and (sums or math.isfinite(t)):
+            self._add_cells(r0, c0, inside, sums, t)
+        return int(np.count_nonzero(inside))
+
+    def _add_cells(
+        self,
+        r0: int,
+        c0: int,
+        inside: NDArray[np.bool_],
+        sums: Sequence[tuple[str, float]],
+        t: float,
+    ) -> None:
+        """Add ``value`` to layer ``name`` for each ``(name, value)`` of ``sums``, and make
+        ``last_seen`` at least ``t`` (s; NaN: unchanged), in the cells of a box on the
+        lattice (its first cell ``(r0, c0)``) where ``inside``, tile by tile."""
+        n = self.tile_cells
+        height, width = inside.shape
+        for tr in range(r0 // n, (r0 + height - 1) // n + 1):
+            rs = max(r0, tr * n)
+            rows = slice(rs - r0, min(r0 + height, (tr + 1) * n) - r0)
+            for tc in range(c0 // n, (c0 + width - 1) // n + 1):
+                cs = max(c0, tc * n)
+                ii, jj = np.nonzero(inside[rows, cs - c0 : min(c0 + width, (tc + 1) * n) - c0])
+                if ii.size == 0:
+                    continue
+                cells = (ii + (rs - tr * n)) * n + (jj + (cs - tc * n))  # in the flat tile
+                tile = self.tile((tr, tc))
+                for name, value in sums:
+                    if name in tile:
+                        tile[name].reshape(-1)[cells] += value
+                if math.isfinite(t) and "last_seen" in tile:
+                    seen = tile["last_seen"].reshape(-1)
+                    seen[cells] = np.fmax(seen[cells], t)
 
     def add_layers_from(self, part: GridMap, names: Sequence[str]) -> None:
         """Add layers ``names`` of a lattice-aligned grid (sums; latest times by maximum)
@@ -319,12 +349,8 @@ class TiledMap:
         :class:`~rough_map.features.HeightSample` at this map's resolution)."""
         if rows.size == 0:
             return
-        n = self.tile_cells
-        tr, tc = rows // n, cols // n
-        for key in sorted(set(zip(tr.tolist(), tc.tolist(), strict=True))):
-            sel = (tr == key[0]) & (tc == key[1])
+        for key, sel, r, c in by_tile(rows, cols, self.tile_cells):
             tile = self.tile(key)
-            r, c = rows[sel] - key[0] * n, cols[sel] - key[1] * n
             np.add.at(tile[HEIGHT_LAYERS[0]], (r, c), sums[sel])
             np.add.at(tile[HEIGHT_LAYERS[1]], (r, c), counts[sel])
 
@@ -347,45 +373,34 @@ class TiledMap:
         return len(far)
 
     def _spill(self, key: tuple[int, int], grid: GridMap) -> None:
-        """Write the tile's cells that hold data (their bounding box) to disk."""
-        used = np.zeros(grid.shape, dtype=bool)
-        for name in grid.layers:
-            if name not in LATEST:
-                used |= grid[name] != 0
-        if not used.any():
+        """Write the tile's cells that hold data (their bounding box) to disk, unless its
+        file holds it already."""
+        if key in self._clean:
+            self._clean.discard(key)
             return
-        rr, cc = np.flatnonzero(used.any(axis=1)), np.flatnonzero(used.any(axis=0))
-        r0, r1, c0, c1 = int(rr[0]), int(rr[-1]) + 1, int(cc[0]), int(cc[-1]) + 1
-        arrays: dict[str, Any] = {name: grid[name][r0:r1, c0:c1] for name in grid.layers}
-        path = self._path(key)
-        try:
-            with open(path, "wb") as fh:
-                np.savez(fh, _window=np.array([r0, r1, c0, c1]), **arrays)
-        except OSError as exc:  # a full or read-only temporary folder
-            path.unlink(missing_ok=True)
-            raise write_error(path, exc) from None
-        self._spilled.add(key)
+        if write_tile(self._path(key), grid):
+            self._spilled.add(key)
+        elif key in self._spilled:  # (sums only grow: a tile on disk never empties)
+            self._path(key).unlink(missing_ok=True)
+            self._spilled.discard(key)
 
     # -- the state on disk ------------------------------------------------------------
 
     def save(self, path: PathLike, attrs: dict[str, Any] | None = None) -> Path:
         """Write the sums of every tile (the part holding data) to one state file
         (:mod:`rough_map.map.state`), atomically, one tile in memory at a time."""
-        infos: dict[str, dict[str, Any]] = {}
 
         def tiles() -> Iterator[StateTile]:
             for key in self.keys():
-                tile = self.tile(key)
-                for name in tile.layers:
-                    i = tile.info(name)
-                    fill = None if math.isnan(i.fill) else i.fill
-                    infos[name] = {"units": i.units, "kind": i.kind, "fill": fill}
+                tile = self.tile(key, write=False)
+                window = used_window(tile)
+                arrays = {}
+                if window is not None:
+                    r0, r1, c0, c1 = window
+                    arrays = {n: np.ascontiguousarray(tile[n][r0:r1, c0:c1]) for n in tile.layers}
                 self._spill(key, self._tiles.pop(key))
-                if key in self._spilled:
-                    with np.load(self._path(key)) as saved:
-                        r0, r1, c0, c1 = (int(v) for v in saved["_window"])
-                        arrays = {n: saved[n] for n in saved.files if n != "_window"}
-                    yield key, (r0, r1, c0, c1), arrays
+                if window is not None:
+                    yield key, window, arrays
 
         meta = self._meta(attrs)
         return write_state(path, meta, tiles())
@@ -406,7 +421,7 @@ class TiledMap:
                 "size": self.spec.size,
                 "lateral": self.spec.lateral,
             },
-            "attrs": _jsonable(attrs or {}),
+            "attrs": jsonable_attrs(attrs or {}),
         }
 
     @classmethod
@@ -491,7 +506,8 @@ class TiledMap:
         n = self.tile_cells
         for key in self._keys_over(geo.bounds):
             if key in self._tiles or key in self._spilled:
-                self._place(part, self.tile(key), key[0] * n - r_off, key[1] * n - c_off, n)
+                tile = self.tile(key, write=False)
+                self._place(part, tile, key[0] * n - r_off, key[1] * n - c_off)
         return self._estimates(part)
 
     def merged(self, margin: float = 1.0, attrs: dict[str, Any] | None = None) -> GridMap:
@@ -514,19 +530,24 @@ class TiledMap:
     ) -> GridMap:
         """The estimate layers over ``geo``, computed tile by tile (the sums stay in the
         tiles; with ``consume`` each tile goes back to disk once placed)."""
-        grid = GridMap(geo, attrs=attrs)
-        self._init_layers(grid)
-        for name in grid.layers:
-            if grid.info(name).kind == "internal":
-                grid.drop_layer(name)
+        # the estimate layers only (a cell's worth of layers tells which, in which order)
+        cell = GridMap(replace(geo, shape=(1, 1)), attrs=attrs)
+        self._init_layers(cell)
+        grid = GridMap(geo, attrs=cell.attrs)
+        for name in cell.layers:
+            if cell.info(name).kind != "internal":
+                grid.add_layer_as(name, cell.info(name))
         r_off = round(geo.origin[1] / self.resolution)
         c_off = round(geo.origin[0] / self.resolution)
         n = self.tile_cells
         keys = [k for k in self._keys_over(geo.bounds) if k in self._tiles or k in self._spilled]
         for key in keys:
-            tile = self.tile(key)
-            estimates = self._estimates(tile)
-            self._place(grid, estimates, key[0] * n - r_off, key[1] * n - c_off, n)
+            tile = self.tile(key, write=False)
+            found = data_part(tile)  # outside it, the estimates are the grid's fill
+            if found is not None:
+                r0, c0, part = found
+                estimates = self._estimates(part)
+                self._place(grid, estimates, key[0] * n - r_off + r0, key[1] * n - c_off + c0)
             if consume:
                 self._spill(key, self._tiles.pop(key))
         if "elevation" not in grid:
@@ -534,10 +555,10 @@ class TiledMap:
         return grid
 
     def _estimates(self, tile: GridMap) -> GridMap:
-        """The estimate layers of one tile (a new grid; the tile is left as it is)."""
-        est = GridMap(tile.geometry, attrs=dict(tile.attrs))
-        for name in tile.layers:
-            _copy_layer(est, name, tile.info(name), tile[name])
+        """The estimate layers of one tile (a new grid, whose value layers among the
+        tile's accumulators, ``count`` and ``last_seen``, are the tile's arrays: read only;
+        the tile is left as it is)."""
+        est = tile.shallow_copy()
         self._init_layers(est)
         update_estimates(est)
         add_elevation_layer(est)
@@ -547,18 +568,18 @@ class TiledMap:
         return est
 
     @staticmethod
-    def _place(grid: GridMap, tile: GridMap, r0: int, c0: int, n: int) -> None:
+    def _place(grid: GridMap, tile: GridMap, r0: int, c0: int) -> None:
         """Copy the part of ``tile`` (whose cell [0, 0] is the grid's [r0, c0]) inside the grid."""
         rows, cols = grid.shape
         gr0, gc0 = max(r0, 0), max(c0, 0)
-        gr1, gc1 = min(r0 + n, rows), min(c0 + n, cols)
+        gr1, gc1 = min(r0 + tile.shape[0], rows), min(c0 + tile.shape[1], cols)
         if gr0 >= gr1 or gc0 >= gc1:
             return
         dst = (slice(gr0, gr1), slice(gc0, gc1))
         src = (slice(gr0 - r0, gr1 - r0), slice(gc0 - c0, gc1 - c0))
         for name in tile.layers:
             if name not in grid:
-                _copy_layer(grid, name, tile.info(name))
+                grid.add_layer_as(name, tile.info(name))
             grid[name][dst] = tile[name][src]
 
     def close(self) -> None:
@@ -575,26 +596,3 @@ class TiledMap:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def _jsonable(attrs: dict[str, Any]) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for k, v in attrs.items():
-        if isinstance(v, str | int | float | bool) or v is None:
-            out[k] = v
-        elif isinstance(v, tuple | list) and all(isinstance(x, str | int | float) for x in v):
-            out[k] = list(v)
-    return out
-
-
-def _copy_layer(grid: GridMap, name: str, info: Any, data: Any = None) -> None:
-    """Add layer ``name`` to ``grid`` as ``info`` (a LayerInfo) describes it."""
-    grid.add_layer(
-        name,
-        units=info.units,
-        description=info.description,
-        fill=info.fill,
-        kind=info.kind,
-        categories=info.categories,
-        data=data,
-    )

@@ -55,7 +55,7 @@ class GriddedPatch:
     @property
     def fill_fraction(self) -> float:
         """Fraction of cells with at least one point."""
-        return float(np.mean(self.counts > 0))
+        return np.count_nonzero(self.counts) / self.counts.size
 
     @property
     def points_per_cell(self) -> float:
@@ -178,11 +178,17 @@ def _plane(
     half = 0.5 * spec.n * spec.spacing
     dx, dy = x - spec.ahead, y - spec.lateral
     ok = (np.abs(dx) < half) & (np.abs(dy) < half) & np.isfinite(z)
-    if ok.sum() < 10:
+    count = int(ok.sum())
+    if count < 10:
         return None, math.nan
-    a = np.column_stack([np.ones(int(ok.sum())), dx[ok], dy[ok]])
-    try:  # normal equations: 3 x 3, much cheaper than lstsq on the points
-        coef = np.linalg.solve(a.T @ a, a.T @ z[ok])
+    dx, dy, z = dx[ok], dy[ok], z[ok]
+    # The 3 x 3 normal equations, from sums of products (neither lstsq on the points nor a
+    # BLAS product of the (N, 3) design matrix: both far slower for three columns).
+    sx, sy, sxy = float(dx.sum()), float(dy.sum()), float((dx * dy).sum())
+    ata = [[count, sx, sy], [sx, float((dx * dx).sum()), sxy], [sy, sxy, float((dy * dy).sum())]]
+    atz = [float(z.sum()), float((dx * z).sum()), float((dy * z).sum())]
+    try:
+        coef = np.linalg.solve(np.array(ata), np.array(atz))
     except np.linalg.LinAlgError:
         return None, math.nan
     normal = np.array([-coef[1], -coef[2], 1.0])
@@ -202,7 +208,7 @@ def _grid(pts, spec, rot, offset, min_points, estimate_noise) -> GriddedPatch:
         if not np.isfinite(pts).all(axis=1).any():
             raise InputError(f"points: all {len(pts)} points have NaN or infinite values")
         sample = pts[np.isfinite(pts).all(axis=1), 2]
-    zref = float(np.median(sample))
+    zref = _median(sample)
     cnt = np.zeros(width * width, dtype=np.intp)
     sz = np.zeros(width * width)
     szz = np.zeros(width * width)
@@ -259,19 +265,55 @@ def _grid(pts, spec, rot, offset, min_points, estimate_noise) -> GriddedPatch:
         # with the local gradient, so slopes do not turn point positions into height noise.
         du = (su.reshape(width, width)[inner] / counts - 0.5) * spec.spacing
         dv = (sv.reshape(width, width)[inner] / counts - 0.5) * spec.spacing
-        gy, gx = np.gradient(mean, spec.spacing)
-    heights = mean - np.nan_to_num(gx * du + gy * dv) + zref
+        gx, gy = _gradient(mean, spec.spacing)
+        shift = gx * du
+        shift += gy * dv
+    shift[~np.isfinite(shift)] = 0.0  # empty cells, and cells without a neighbour
+    heights = mean - shift + zref
     point_noise = noise_psd = math.nan
     if estimate_noise:
-        point_noise, noise_psd = _noise(mean, counts, szz.reshape(width, width)[inner], spec)
+        point_noise, noise_psd = _noise(
+            mean, counts, szz.reshape(width, width)[inner], spec, (gx, gy)
+        )
     return GriddedPatch(heights, counts, spec, n_in, point_noise, noise_psd)
 
 
-def _noise(mean: np.ndarray, counts: np.ndarray, szz: np.ndarray, spec: PatchSpec):
-    """Pooled within-cell scatter, less the local slope's share (B^2 |grad z|^2 / 12)."""
+def _median(values: np.ndarray) -> float:
+    """The median of a non-empty 1-D array (np.median without its overhead)."""
+    n = values.size
+    k = n // 2
+    if n % 2:
+        return float(np.partition(values, k)[k])
+    part = np.partition(values, (k - 1, k))
+    return float((part[k - 1] + part[k]) / 2)
+
+
+def _gradient(z: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """The gradient of a grid along x (columns) and y (rows): central differences inside,
+    one-sided at the edges (np.gradient's arithmetic, without its overhead)."""
+    gx = np.empty_like(z)
+    gy = np.empty_like(z)
+    gx[:, 1:-1] = (z[:, 2:] - z[:, :-2]) / (2.0 * step)
+    gx[:, 0] = (z[:, 1] - z[:, 0]) / step
+    gx[:, -1] = (z[:, -1] - z[:, -2]) / step
+    gy[1:-1] = (z[2:] - z[:-2]) / (2.0 * step)
+    gy[0] = (z[1] - z[0]) / step
+    gy[-1] = (z[-1] - z[-2]) / step
+    return gx, gy
+
+
+def _noise(
+    mean: np.ndarray,
+    counts: np.ndarray,
+    szz: np.ndarray,
+    spec: PatchSpec,
+    gradient: tuple[np.ndarray, np.ndarray],
+):
+    """Pooled within-cell scatter, less the local slope's share (B^2 |grad z|^2 / 12);
+    ``gradient`` is that of the cell means along x and y."""
+    gx, gy = gradient
     with np.errstate(invalid="ignore", divide="ignore"):
         ss = szz - counts * mean * mean  # sum of squares about the cell mean, m^2
-        gy, gx = np.gradient(mean, spec.spacing)
     slope_var = (gx * gx + gy * gy) * spec.spacing**2 / 12.0
     ok = (counts >= 3) & np.isfinite(slope_var) & np.isfinite(ss)
     if not ok.any():
@@ -281,11 +323,13 @@ def _noise(mean: np.ndarray, counts: np.ndarray, szz: np.ndarray, spec: PatchSpe
     # Pool over cells, leaving out only gross outliers. Trimming a fixed share of the most
     # scattered cells would bias the pool low by the tail of its chi-square law: 12 % at
     # 4 points per cell, which flattens w and lowers R on sparse clouds.
-    med = float(np.median(var_c))
+    med = _median(var_c)
     keep = var_c <= 50.0 * med if med > 0 else np.ones(var_c.shape, dtype=bool)
     var = float(np.sum(var_c[keep] * dof[keep]) / np.sum(dof[keep]))
     var = max(var, 0.0)
-    inv_n = float(np.mean(1.0 / counts[counts > 0]))
+    # mean of 1/count over the filled cells, from the histogram of the counts
+    hist = np.bincount(counts.ravel())[1:]
+    inv_n = float((hist / np.arange(1, hist.size + 1)).sum() / hist.sum())
     return math.sqrt(var), var * inv_n * spec.spacing / math.pi
 
 

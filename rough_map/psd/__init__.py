@@ -48,6 +48,16 @@ more than ``max_gap_fraction`` of its cells are missing. The number of dropped p
 ``PatchRoughness.n_dropped``; fewer than ``min_profiles`` remaining raises
 :class:`rough_map.errors.PatchError`.
 
+Batches
+-------
+:func:`patch_roughness_batch` measures a stack of patches in one vectorised pass (raising
+for the first patch it refuses); :func:`patch_roughness_each` does the same but returns a
+patch's :class:`~rough_map.errors.PatchError` in its place and takes a noise floor per
+patch. A patch's numbers do not depend on what it is stacked with, to the last bit: every
+sum over a patch's bins or profiles is taken row by row, never through a matrix product
+whose order of summation changes with the stack's size. So a traverse's frames, measured a
+chunk at a time, read exactly as one frame measured alone (the online mapper).
+
 Layout
 ------
 :mod:`rough_map.psd.estimator` holds the public functions; the private modules hold the
@@ -63,7 +73,12 @@ from rough_map.psd._gaps import fill_gaps
 from rough_map.psd._leakage import GRIDDINGS, write_leakage_tables
 from rough_map.psd._result import PatchRoughness
 from rough_map.psd._spectra import log_bias
-from rough_map.psd.estimator import patch_roughness, patch_roughness_batch, profile_psd
+from rough_map.psd.estimator import (
+    patch_roughness,
+    patch_roughness_batch,
+    patch_roughness_each,
+    profile_psd,
+)
 
 __all__ = [
     "GRIDDINGS",
@@ -73,6 +88,7 @@ __all__ = [
     "log_bias",
     "patch_roughness",
     "patch_roughness_batch",
+    "patch_roughness_each",
     "profile_psd",
     "write_leakage_tables",
 ]

@@ -21,8 +21,9 @@ from typing import NamedTuple
 import numpy as np
 
 from rough_map import iso8608
+from rough_map.errors import PatchError
 from rough_map.psd._leakage import interp_rows, leakage, leakage_table
-from rough_map.psd._noise import check_floor, floor_correction
+from rough_map.psd._noise import floor_correction
 from rough_map.psd._options import Options
 from rough_map.psd._regression import Projections, fit_plan, project, project_masked
 from rough_map.psd._result import PatchRoughness
@@ -55,41 +56,52 @@ def _leakage_offsets(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Projections on (xc, avg) of the leakage offset at each patch's waviness."""
     n_patch = pr.yx.shape[0]
-    lx = np.zeros(n_patch)
-    la = np.zeros(n_patch)
-    for _ in range(1 if waviness is not None else 3):
-        # The window/detrend offset depends (weakly) on the waviness.
-        w_patch = (
-            np.full(n_patch, float(waviness))
-            if waviness is not None
-            else (pr.yx.mean(axis=1) + sx - lx) / pr.sxx
-        )
-        lx = interp_rows(w_patch, pr.leak_x)
-        la = interp_rows(w_patch, pr.leak_a)
+    if waviness is not None:
+        w_patch = np.full(n_patch, float(waviness))
+    else:
+        # The window/detrend offset depends (weakly) on the waviness: iterated three times.
+        ym = pr.yx.mean(axis=1) + sx
+        lx = np.zeros(n_patch)
+        for _ in range(2):
+            lx = interp_rows((ym - lx) / pr.sxx, pr.leak_x)
+        w_patch = (ym - lx) / pr.sxx
+    lx = interp_rows(w_patch, pr.leak_x)
+    la = interp_rows(w_patch, pr.leak_a)
     return lx, la
 
 
 def fit(
-    spectra: Spectra, opt: Options, *, spacing: float, n: int, seg_n: int, n_dropped: int
-) -> list[PatchRoughness]:
+    spectra: Spectra,
+    opt: Options,
+    floors: np.ndarray | None,
+    *,
+    spacing: float,
+    n: int,
+    seg_n: int,
+    n_dropped: int,
+) -> list[PatchRoughness | PatchError]:
     """Vectorised log-log fit of ``spectra.p`` (patches, profiles, bins).
 
-    ``n`` is the profile length and ``seg_n`` the samples per spectral segment. The
-    per-bin corrections (bias, leakage, noise) are the same for every profile of a patch,
-    so the line fits are computed once on the raw log spectra (one matrix product) and the
-    corrections enter through their projections on the fit's two regressors.
+    ``floors`` is each patch's noise floor in m^3/rad (None: none known), subtracted when
+    ``opt`` says so; ``n`` is the profile length and ``seg_n`` the samples per spectral
+    segment. The per-bin corrections (bias, leakage, noise) are the same for every profile
+    of a patch, so the line fits are computed once on the raw log spectra and the
+    corrections enter through their projections on the fit's two regressors. A patch with
+    too few wavenumbers above its floor gets a :class:`PatchError` in its place.
     """
     p, bias = spectra.p, spectra.bias
     n_bins = p.shape[2]
     unbiased = opt.method == "unbiased"
     plan = fit_plan(n_bins, seg_n, opt.method, spacing, opt.omega0, opt.window, opt.gridding)
-    logp = np.log(np.maximum(p, np.float32(1e-38)))
     mean_psd = p.mean(axis=1, dtype=np.float64)
-    noise = math.nan if opt.noise_psd is None else float(opt.noise_psd)
+    noise = np.full(p.shape[0], math.nan) if floors is None else floors
     shift: np.ndarray
     if opt.subtract_noise:
-        noise = check_floor(opt.noise_psd)
-        shift, weights = floor_correction(mean_psd, noise, plan.mask)
+        shift, weights, short = floor_correction(mean_psd, noise, plan.mask)
+        if short.any():
+            return _without(short, spectra, opt, noise, spacing, n, seg_n, n_dropped)
+    logp = np.log(np.maximum(p, np.float32(1e-38)))
+    if opt.subtract_noise:
         table = leakage_table(seg_n, opt.window, opt.gridding)[:, :n_bins]
         pr = project_masked(logp, plan.x, weights, table)
     else:
@@ -120,9 +132,41 @@ def fit(
     fit_res = np.sqrt((resid * resid).sum(axis=1) / pr.mask.sum(axis=1))
     # Standard errors of the patch means, with the correlation between profiles.
     se = standard_errors(b, wv, wm, pr, opt, seg_n=seg_n, bias=bias)
-    return _results(
-        spectra, opt, b, wv, mean_psd, pr.mask, fit_res, noise, spacing, n, n_dropped, se
+    return list(
+        _results(
+            spectra, opt, b, wv, mean_psd, pr.mask, fit_res, noise, spacing, n, n_dropped, se
+        )
     )
+
+
+def _without(
+    short: np.ndarray,
+    spectra: Spectra,
+    opt: Options,
+    noise: np.ndarray,
+    spacing: float,
+    n: int,
+    seg_n: int,
+    n_dropped: int,
+) -> list[PatchRoughness | PatchError]:
+    """The fit of the patches that keep enough wavenumbers above their floor, and a
+    :class:`PatchError` for the ``short`` ones, in order."""
+    keep = ~short
+    kept = Spectra(spectra.omega, spectra.p[keep], spectra.bias, spectra.rms[keep])
+    fitted = iter(
+        fit(kept, opt, noise[keep], spacing=spacing, n=n, seg_n=seg_n, n_dropped=n_dropped)
+        if keep.any()
+        else []
+    )
+    return [
+        PatchError(
+            "fewer than 3 wavenumbers above the noise floor; the patch is too smooth "
+            f"for this sensor (noise floor {noise[i]:.3g} m^3/rad)"
+        )
+        if short[i]
+        else next(fitted)
+        for i in range(short.size)
+    ]
 
 
 def _results(
@@ -133,7 +177,7 @@ def _results(
     mean_psd: np.ndarray,
     mask: np.ndarray,
     fit_res: np.ndarray,
-    noise: float,
+    noise: np.ndarray,
     spacing: float,
     n: int,
     n_dropped: int,
@@ -168,7 +212,7 @@ def _results(
             length=n * spacing,
             fit_mask=mask[i],
             fit_residual=float(fit_res[i]),
-            noise_psd=noise,
+            noise_psd=float(noise[i]),
             noise_subtracted=bool(opt.subtract_noise),
             method=opt.method,
             omega0=opt.omega0,

@@ -110,25 +110,42 @@ def fill_gaps(
     if not missing.any():
         return h, np.ones(h.shape[0], dtype=bool)
     m, n = h.shape
-    cols = np.arange(n)
-    valid = ~missing
-    # Index of the previous and next valid sample for every cell (vectorised over rows).
-    prev = np.maximum.accumulate(np.where(valid, cols, -1), axis=1)
-    nxt = np.minimum.accumulate(np.where(valid, cols, n)[:, ::-1], axis=1)[:, ::-1]
-    gap_len = np.where(missing, np.minimum(nxt, n) - np.maximum(prev, -1) - 1, 0)
-    # A gap touching an end counts its full length from that end.
+    # The runs of missing cells, found on the rows padded with a valid cell at each end
+    # (so no run crosses a row): start and end (exclusive) in padded coordinates.
+    padded = np.zeros((m, n + 2), dtype=np.int8)
+    padded[:, 1:-1] = missing
+    step = np.diff(padded.ravel())
+    starts = np.flatnonzero(step == 1) + 1
+    ends = np.flatnonzero(step == -1) + 1
+    row = starts // (n + 2)
+    first = starts - row * (n + 2) - 1  # first missing column of each run
+    length = ends - starts  # a gap touching an end counts its full length from that end
+    longest = np.zeros(m, dtype=np.intp)
+    np.maximum.at(longest, row, length)
+    n_missing = missing.sum(axis=1)
     max_cells = int(math.floor(max_gap / spacing + 1e-9))
-    keep = (gap_len.max(axis=1) <= max_cells) & (missing.mean(axis=1) <= max_gap_fraction)
-    keep &= valid.sum(axis=1) >= 2
-    p = np.clip(prev, 0, n - 1)
-    q = np.clip(nxt, 0, n - 1)
-    rows = np.arange(m)[:, None]
-    hp = h[rows, p]
-    hq = h[rows, q]
+    keep = (longest <= max_cells) & (n_missing / n <= max_gap_fraction)
+    keep &= n - n_missing >= 2
+    filled = h.copy()
+    fill = keep[row]
+    if not fill.any():
+        return filled, keep
+    row, first, length = row[fill], first[fill], length[fill]
+    # Each missing cell of a kept row: the valid samples before and after its run
+    # (-1 and n past the ends), interpolated linearly; a run touching an end takes the
+    # valid sample at its other side.
+    size = int(length.sum())
+    run = np.repeat(np.arange(row.size), length)
+    col = first[run] + (np.arange(size) - np.repeat(np.cumsum(length) - length, length))
+    r = row[run]
+    prev = first[run] - 1
+    nxt = first[run] + length[run]
+    hp = h[r, np.clip(prev, 0, n - 1)]
+    hq = h[r, np.clip(nxt, 0, n - 1)]
     hp = np.where(prev < 0, hq, hp)
     hq = np.where(nxt >= n, hp, hq)
-    span = np.where((nxt < n) & (prev >= 0), (nxt - prev).astype(float), 1.0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        frac = np.where((nxt < n) & (prev >= 0), (cols - prev) / span, 0.0)
-    filled = np.where(missing & keep[:, None], hp + frac * (hq - hp), h)
+    inside = (nxt < n) & (prev >= 0)
+    span = np.where(inside, (nxt - prev).astype(float), 1.0)
+    frac = np.where(inside, (col - prev) / span, 0.0)
+    filled[r, col] = hp + frac * (hq - hp)
     return filled, keep

@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from rough_map.errors import InputError, PatchError
+from rough_map.errors import InputError
 
 #: Bins whose noise-free power is below this fraction of the measured power leave the fit.
 MIN_SIGNAL_FRACTION = 0.5
@@ -46,20 +46,21 @@ def _smooth_bins(psd: np.ndarray, half: int = SMOOTH_BINS) -> np.ndarray:
     k = np.arange(n)
     lo = np.maximum(k - half, 0)
     hi = np.minimum(k + half + 1, n)
-    return (c[..., hi] - c[..., lo]) / (hi - lo)
+    # C order (fancy indexing gives F order): row sums must not depend on the stack's size
+    return np.ascontiguousarray((c[..., hi] - c[..., lo]) / (hi - lo))
 
 
 def floor_correction(
-    mean_psd: np.ndarray, noise: float, base_mask: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per-bin log correction and fit mask of each patch after subtracting the floor.
+    mean_psd: np.ndarray, noise: np.ndarray, base_mask: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-bin log correction and fit weights of each patch after subtracting its floor.
 
     Parameters
     ----------
     mean_psd : ndarray, shape (patches, bins)
         Patch-mean PSD in m^3/rad.
-    noise : float
-        The floor in m^3/rad.
+    noise : ndarray, shape (patches,)
+        Each patch's floor in m^3/rad.
     base_mask : ndarray of bool, shape (bins,)
         The ordinates the fit would use without noise.
 
@@ -73,23 +74,17 @@ def floor_correction(
         a floor that takes a share ``1 - r`` of its power has ``1 / r^2`` times the variance
         of a clean one. 0 outside ``base_mask`` and from the first bin where the noise
         takes more than half the power.
-
-    Raises
-    ------
-    PatchError
-        Fewer than 3 bins are left in some patch.
+    short : ndarray of bool, shape (patches,)
+        Patches left with fewer than 3 bins: too smooth for their sensor, no fit.
     """
     smooth = _smooth_bins(mean_psd)
-    ratio = np.clip((smooth - noise) / smooth, 1e-12, None)
+    floor = np.asarray(noise, dtype=float)[:, None]
+    ratio = np.clip((smooth - floor) / smooth, 1e-12, None)
     shift = np.log(ratio)  # per-bin log correction shared by all profiles of a patch
     # The band ends at the first wavenumber where the noise takes half the power: a mask
     # that kept later bins wherever the spectrum happens to be high would keep only upward
     # fluctuations there, which flattens w and lowers R.
     above = ratio >= MIN_SIGNAL_FRACTION
     mask = base_mask[None, :] & (np.cumprod(above | ~base_mask[None, :], axis=1) > 0)
-    if (mask.sum(axis=1) < MIN_BINS).any():
-        raise PatchError(
-            "fewer than 3 wavenumbers above the noise floor; the patch is too smooth "
-            f"for this sensor (noise floor {noise:.3g} m^3/rad)"
-        )
-    return shift, np.where(mask, ratio * ratio, 0.0)
+    short = mask.sum(axis=1) < MIN_BINS
+    return shift, np.where(mask, ratio * ratio, 0.0), short

@@ -106,9 +106,9 @@ class Projections:
 
 
 def project(logp: np.ndarray, plan: FitPlan) -> Projections:
-    """Projections with the plan's mask for every patch (one float32 matrix product)."""
+    """Projections with the plan's mask for every patch (float32 dot products)."""
     n_patch, m, n_bins = logp.shape
-    proj_all = (logp.reshape(-1, n_bins) @ plan.proj).astype(float)
+    proj_all = _row_dot(logp.reshape(-1, 1, n_bins), plan.proj.T).astype(float)
     return Projections(
         mask=np.broadcast_to(plan.mask, (n_patch, n_bins)),
         xm=np.full(n_patch, plan.xm),
@@ -128,10 +128,10 @@ def project_masked(
     """Projections of a weighted fit, with weights per patch and bin, shape (patches, bins)
     (0: the bin is out of the fit; a boolean mask gives the plain fit); ``table`` is the
     leakage table cut to the bins."""
-    wts = np.asarray(weights, dtype=float)
+    wts = np.ascontiguousarray(weights, dtype=float)  # row sums in one order
     mask = wts > 0
     cnt = wts.sum(axis=1)
-    xm = (wts @ x) / cnt
+    xm = _row_dot(wts, x) / cnt
     dev = x[None, :] - xm[:, None]
     xc = dev * wts
     sxx = (xc * dev).sum(axis=1)  # sum of w (x - xm)^2
@@ -142,8 +142,17 @@ def project_masked(
         sxx=sxx,
         xc=xc,
         avg=avg,
-        yx=np.einsum("pmk,pk->pm", logp, xc.astype(np.float32)).astype(float),
-        ym=np.einsum("pmk,pk->pm", logp, avg.astype(np.float32)).astype(float),
-        leak_x=xc @ table.T,
-        leak_a=avg @ table.T,
+        yx=_row_dot(logp, xc.astype(np.float32)[:, None, :]).astype(float),
+        ym=_row_dot(logp, avg.astype(np.float32)[:, None, :]).astype(float),
+        leak_x=_row_dot(xc[:, None, :], table),
+        leak_a=_row_dot(avg[:, None, :], table),
     )
+
+
+def _row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``(a * b).sum(axis=-1)``, broadcast: the dot products along the last axis, each
+    computed alone. A matrix product or einsum would sum in an order that depends on how
+    many patches are stacked, so a patch's estimate would change (in its last bits) with
+    the batch it came in; a frame measured alone, as the online mapper does, must give
+    the same numbers as in a traverse's chunk."""
+    return np.multiply(a, b, order="C").sum(axis=-1)

@@ -155,13 +155,18 @@ def periodogram(
         x: np.ndarray = np.empty(shape, dtype=np.float32)
         np.subtract(h, ref, out=x, casting="same_kind")
         x = x.reshape(-1, n)
-        coef = x @ basis
-        ss = np.einsum("ij,ij->i", x, x) - np.einsum("ij,ij->i", coef, coef)
+        # Row by row (multiply, then sum along the row), never a matrix product, whose
+        # order of summation depends on how many rows are stacked: a profile's spectrum
+        # must not depend on the batch it came in.
+        coef = np.stack([(x * basis[:, 0]).sum(axis=1), (x * basis[:, 1]).sum(axis=1)], axis=1)
+        ss = (x * x).sum(axis=1) - (coef * coef).sum(axis=1)
         # Fold the density scale into the window (one pass less): |c X|^2 = c^2 |X|^2.
         c = np.float32(math.sqrt(scale * spacing))
         x *= win * c
         spec = scipy.fft.rfft(x, axis=-1)[:, 1:]
-        spec -= coef @ (basis_fft * c)
+        trend = basis_fft * c
+        spec -= coef[:, :1] * trend[0]
+        spec -= coef[:, 1:] * trend[1]
         p = spec.real * spec.real
         p += spec.imag * spec.imag
         if n % 2 == 0:

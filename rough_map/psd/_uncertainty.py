@@ -329,8 +329,10 @@ def _design_effects(v: np.ndarray, t0: np.ndarray, tw: np.ndarray) -> np.ndarray
     inside = (pos >= 0) & (pos < n_k)
     vv = v[:, :, None] * np.where(inside, v[:, np.clip(pos, 0, n_k - 1)], 0.0)
     flat = vv.reshape(vv.shape[0], -1)
-    q0 = flat @ t0.reshape(t0.shape[0], -1).T
-    qw = flat @ tw.reshape(tw.shape[0], -1).T
+    # dot products one at a time, as rough_map.psd._regression._row_dot does: the same
+    # numbers whatever the number of patches in the batch
+    q0 = np.multiply(flat[:, None, :], t0.reshape(t0.shape[0], -1), order="C").sum(axis=-1)
+    qw = np.multiply(flat[:, None, :], tw.reshape(tw.shape[0], -1), order="C").sum(axis=-1)
     d = 1.0 + 2.0 * np.divide(qw, q0, out=np.zeros_like(qw), where=q0 > 0)
     return np.maximum(d, 1.0)
 

@@ -18,6 +18,7 @@ from rough_map.errors import InputError, PatchError
 from rough_map.patch._params import MAX_CELLS, MAX_PROFILE, MAX_SAMPLES, check_int
 from rough_map.psd._fit import Spectra, fit
 from rough_map.psd._gaps import as_heights, check_heights, check_spacing, fill_gaps
+from rough_map.psd._noise import check_floor
 from rough_map.psd._options import Options, check_window
 from rough_map.psd._result import PatchRoughness
 from rough_map.psd._spectra import detrended_rms, periodogram, spectrum
@@ -122,7 +123,8 @@ def patch_roughness(
         check_heights(arr)  # raises: not a 2-D grid
     if arr.size == 0:
         raise InputError(f"heights is empty (shape {arr.shape})")
-    return _estimate(_checked_stack(arr.reshape(1, -1, arr.shape[-1]), opt), spacing, opt)[0]
+    stack = _checked_stack(arr.reshape(1, -1, arr.shape[-1]), opt)
+    return _raised(_estimate(stack, spacing, opt, _floors(opt, 1)))[0]
 
 
 def patch_roughness_batch(
@@ -162,7 +164,65 @@ def patch_roughness_batch(
     opt = Options(**options)
     spacing = check_spacing(spacing)
     opt.check_omega0()
-    return _batch(_as_float(heights), spacing, opt)
+    return _raised(_batch(_as_float(heights), spacing, opt, None))
+
+
+def patch_roughness_each(
+    heights: np.ndarray, spacing: float, *, noise_psd: Any = None, **options: Any
+) -> list[PatchRoughness | PatchError]:
+    """:func:`patch_roughness_batch`, but a patch the estimator refuses (too few usable
+    profiles, too few wavenumbers above its noise floor) gets its
+    :class:`~rough_map.errors.PatchError` in its place instead of stopping the batch, and
+    each patch may have its own noise floor.
+
+    A patch's estimate does not depend on the patches stacked with it (the same numbers,
+    to the last bit, as :func:`patch_roughness` of that patch alone), so frames can be
+    measured in batches and one at a time alike.
+
+    Parameters
+    ----------
+    heights : ndarray, shape (p, m, n)
+        ``p`` height grids in m, NaN for missing cells.
+    spacing : float
+        Sample spacing B in m.
+    noise_psd : float or ndarray of shape (p,), optional
+        The noise floor of every patch, or of each, in m^3/rad.
+    **options
+        The other keyword options of :func:`patch_roughness`.
+
+    Returns
+    -------
+    list of PatchRoughness or PatchError
+        One per patch, in order.
+
+    Raises
+    ------
+    InputError
+        What :func:`patch_roughness_batch` raises for the whole stack (shape, spacing,
+        options, infinite values).
+    """
+    unknown = sorted(set(options) - {f.name for f in dataclasses.fields(Options)})
+    if unknown:
+        raise UnknownOptionError(
+            f"patch_roughness_each() got unexpected keyword arguments {unknown[:5]}"
+        )
+    arr = _as_float(heights)
+    floors: np.ndarray | None = None
+    if noise_psd is not None and np.ndim(noise_psd) > 0:
+        floors = np.asarray(noise_psd, dtype=float)
+        if arr.ndim != 3 or floors.shape != (arr.shape[0],):
+            raise InputError(
+                f"noise_psd has shape {floors.shape}; give one floor (m^3/rad) or one per "
+                f"patch of the stack of shape {arr.shape}"
+            )
+        if not (np.isfinite(floors).all() and (floors >= 0).all() and (floors <= 1e6).all()):
+            raise InputError("noise_psd must be finite floors in [0, 1e6] m^3/rad")
+        opt = Options(noise_psd=float(floors[0]) if floors.size else None, **options)
+    else:
+        opt = Options(noise_psd=noise_psd, **options)
+    spacing = check_spacing(spacing)
+    opt.check_omega0()
+    return _batch(arr, spacing, opt, floors)
 
 
 class UnknownOptionError(InputError, TypeError):
@@ -173,14 +233,37 @@ def _as_float(heights: Any) -> np.ndarray:
     return as_heights(heights)
 
 
-def _batch(arr: np.ndarray, spacing: float, opt: Options) -> list[PatchRoughness]:
+#: What the estimator gives for one patch: its estimate, or why it refused it.
+Outcome = PatchRoughness | PatchError
+
+
+def _batch(
+    arr: np.ndarray, spacing: float, opt: Options, floors: np.ndarray | None
+) -> list[Outcome]:
     if arr.ndim != 3:
         raise InputError(
             f"heights must be a stack (patches, profiles, samples), got shape {arr.shape}"
         )
     if arr.shape[0] == 0:
         return []
-    return _estimate(_checked_stack(arr, opt), spacing, opt)
+    stack = _checked_stack(arr, opt)
+    return _estimate(stack, spacing, opt, _floors(opt, arr.shape[0]) if floors is None else floors)
+
+
+def _floors(opt: Options, n_patch: int) -> np.ndarray | None:
+    """``opt``'s noise floor (m^3/rad) for each patch, checked when it is subtracted; None
+    without one."""
+    if opt.subtract_noise:
+        return np.full(n_patch, check_floor(opt.noise_psd))
+    return None if opt.noise_psd is None else np.full(n_patch, float(opt.noise_psd))
+
+
+def _raised(outcomes: list[Outcome]) -> list[PatchRoughness]:
+    """The estimates, or the first patch's refusal raised."""
+    for r in outcomes:
+        if isinstance(r, PatchError):
+            raise r
+    return outcomes  # type: ignore[return-value]  # no PatchError left
 
 
 def _checked_stack(arr: np.ndarray, opt: Options) -> np.ndarray:
@@ -210,39 +293,44 @@ def _checked_stack(arr: np.ndarray, opt: Options) -> np.ndarray:
 
 
 def _estimate(
-    arr: np.ndarray, spacing: float, opt: Options, n_dropped: int = 0, check: bool = True
-) -> list[PatchRoughness]:
-    """Estimates for a stack (patches, profiles, samples) of heights, in cache-sized chunks.
+    arr: np.ndarray,
+    spacing: float,
+    opt: Options,
+    floors: np.ndarray | None,
+    n_dropped: int = 0,
+    check: bool = True,
+) -> list[Outcome]:
+    """Estimates for a stack (patches, profiles, samples) of heights, in cache-sized chunks;
+    ``floors`` is each patch's noise floor in m^3/rad (None: none known), subtracted when
+    ``opt`` says so.
 
-    With ``check``, patches with non-finite cells go through :func:`_with_gaps`. The
-    single-segment path finds them in its own output (per-profile sums of squares), which
-    saves a pass over the input; the Welch path checks up front.
+    With ``check``, patches with non-finite cells go through :func:`_with_gaps`: found up
+    front from the stack's sum (one cheap pass), and for the rare patch whose values only
+    overflow later, by the single-segment path in its own output (per-profile sums of
+    squares).
     """
     n_patch, m, n = arr.shape
     fast = opt.single_segment(n)
-    if check and not fast:
+    # A sum is cheaper than a periodogram: patches whose sum is not finite have gaps (or
+    # overflow, which the gap path also takes) and skip the periodogram of the fast path.
+    with np.errstate(over="ignore", invalid="ignore"):
+        gaps = check and (not fast or not np.isfinite(arr.sum()))
+    if gaps:
         finite = np.isfinite(arr).all(axis=(1, 2))
         if not finite.all():
-            return _merge(
-                finite,
-                _estimate(arr[finite], spacing, opt, check=False),
-                _with_gaps(arr[~finite], spacing, opt),
-            )
+            return _split(finite, arr, floors, spacing, opt, n_dropped)
     seg_n = n if fast or opt.nperseg is None else min(opt.nperseg, n)
-    out: list[PatchRoughness] = []
+    out: list[Outcome] = []
     chunk = max(1, _CHUNK_CELLS // (m * n))  # keep chunks in cache
     for start in range(0, n_patch, chunk):
         part = arr[start : start + chunk]
+        noise = None if floors is None else floors[start : start + chunk]
         if fast:
             omega, p, ss = periodogram(part, spacing, opt.window)
             if check:
                 finite = np.isfinite(ss).all(axis=1)
                 if not finite.all():
-                    out += _merge(
-                        finite,
-                        _estimate(part[finite], spacing, opt, n_dropped, False),
-                        _with_gaps(part[~finite], spacing, opt),
-                    )
+                    out += _split(finite, part, noise, spacing, opt, n_dropped)
                     continue
             spectra = Spectra(
                 omega, p, -float(np.euler_gamma), np.sqrt(np.maximum(ss.sum(axis=1), 0.0) / (m * n))
@@ -250,36 +338,65 @@ def _estimate(
         else:
             omega, p, bias = spectrum(part, spacing, opt.window, opt.nperseg, opt.noverlap)
             spectra = Spectra(omega, p, bias, detrended_rms(part))
-        out += fit(spectra, opt, spacing=spacing, n=n, seg_n=seg_n, n_dropped=n_dropped)
+        out += fit(spectra, opt, noise, spacing=spacing, n=n, seg_n=seg_n, n_dropped=n_dropped)
     return out
 
 
-def _merge(mask: np.ndarray, where_true: list, where_false: list) -> list:
-    """Interleave two result lists back into the order given by ``mask``."""
-    t, f = iter(where_true), iter(where_false)
-    return [next(t) if k else next(f) for k in mask]
+def _split(
+    finite: np.ndarray,
+    arr: np.ndarray,
+    floors: np.ndarray | None,
+    spacing: float,
+    opt: Options,
+    n_dropped: int,
+) -> list[Outcome]:
+    """The finite patches estimated as they are, the others through the gap policy, back
+    in order."""
+    def sub(mask: np.ndarray) -> np.ndarray | None:
+        return None if floors is None else floors[mask]
+
+    clean = _estimate(arr[finite], spacing, opt, sub(finite), n_dropped, check=False)
+    gapped = _with_gaps(arr[~finite], spacing, opt, sub(~finite))
+    t, f = iter(clean), iter(gapped)
+    return [next(t) if k else next(f) for k in finite]
 
 
-def _with_gaps(arr: np.ndarray, spacing: float, opt: Options) -> list[PatchRoughness]:
-    """Patches with missing cells: the gap policy, one patch at a time."""
-    out = []
-    for patch in arr:
-        h = check_heights(patch)  # refuses infinities; NaN is missing data
-        m = h.shape[0]
+def _with_gaps(
+    arr: np.ndarray, spacing: float, opt: Options, floors: np.ndarray | None
+) -> list[Outcome]:
+    """Patches with missing cells: the gap policy, patch by patch; then the patches that
+    keep the same number of profiles are estimated together."""
+    n_patch, m, n = arr.shape
+    out: list[Outcome | None] = [None] * n_patch
+    kept: dict[int, np.ndarray] = {}
+    chunk = max(1, _CHUNK_CELLS // (m * n))
+    for start in range(0, n_patch, chunk):
+        # the gap policy works profile by profile: on all the chunk's profiles at once
+        rows = check_heights(arr[start : start + chunk].reshape(-1, n))  # NaN passes, inf not
         filled, keep = fill_gaps(
-            h, spacing, max_gap=opt.max_gap, max_gap_fraction=opt.max_gap_fraction
+            rows, spacing, max_gap=opt.max_gap, max_gap_fraction=opt.max_gap_fraction
         )
-        n_used = int(keep.sum())
-        if n_used < opt.min_profiles:
-            raise PatchError(
-                f"only {n_used} of {m} profiles are usable (need {opt.min_profiles}); "
-                f"{m - n_used} dropped for gaps longer than {opt.max_gap} m or more than "
-                f"{opt.max_gap_fraction:.0%} missing"
-            )
-        if n_used < m:
-            log.debug("dropped %d of %d profiles for gaps", m - n_used, m)
-        out += _estimate(filled[keep][None], spacing, opt, m - n_used, check=False)
-    return out
+        grids, uses = filled.reshape(-1, m, n), keep.reshape(-1, m)
+        for j, (grid, used) in enumerate(zip(grids, uses, strict=True)):
+            i, n_used = start + j, int(used.sum())
+            if n_used < opt.min_profiles:
+                out[i] = PatchError(
+                    f"only {n_used} of {m} profiles are usable (need {opt.min_profiles}); "
+                    f"{m - n_used} dropped for gaps longer than {opt.max_gap} m or more than "
+                    f"{opt.max_gap_fraction:.0%} missing"
+                )
+                continue
+            if n_used < m:
+                log.debug("dropped %d of %d profiles for gaps", m - n_used, m)
+            kept[i] = grid[used]
+    for n_used in sorted({k.shape[0] for k in kept.values()}):
+        group = [i for i, k in kept.items() if k.shape[0] == n_used]
+        stack = np.stack([kept[i] for i in group])
+        noise = None if floors is None else floors[group]
+        results = _estimate(stack, spacing, opt, noise, m - n_used, check=False)
+        for i, result in zip(group, results, strict=True):
+            out[i] = result
+    return [r for r in out if r is not None]
 
 
 def profile_psd(

@@ -6,7 +6,8 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rough_map import iso8608
+from rough_map import iso8608, psd
+from rough_map.errors import PatchError
 from rough_map.patch import grid_points
 from rough_map.psd import patch_roughness
 
@@ -67,3 +68,42 @@ def test_cloud_translation_in_z_is_invisible(seed, dz, dy):
     b = grid_points(pts + [0.0, 0.0, dz])
     np.testing.assert_allclose(b.heights - dz, a.heights, atol=1e-9)
     np.testing.assert_array_equal(a.counts, b.counts)
+
+
+def _same(a, b) -> bool:
+    """Two outcomes equal to the last bit (PatchErrors by their message)."""
+    if isinstance(a, PatchError) or isinstance(b, PatchError):
+        return type(a) is type(b) and str(a) == str(b)
+    fields = ("R", "w", "sigma_R", "sigma_w", "se_lnR", "se_w", "rms", "fit_residual")
+    return all(getattr(a, f) == getattr(b, f) for f in fields) and np.array_equal(a.psd, b.psd)
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    seeds=st.lists(seeds, min_size=1, max_size=9),
+    holes=st.floats(0.0, 0.3),
+    subtract=st.booleans(),
+    split=st.integers(1, 8),
+)
+def test_a_patch_reads_the_same_alone_or_in_any_batch(seeds, holes, subtract, split):
+    """patch_roughness_each gives each patch the numbers patch_roughness gives it alone, to
+    the last bit, whatever it is stacked with (gaps, dropped profiles, own noise floors,
+    refusals): frames measured in a traverse's chunks and one at a time agree."""
+    rng = np.random.default_rng(seeds[0])
+    stack = np.stack([_patch(s, w=-2.0 - 0.1 * (s % 8)) for s in seeds])
+    stack[rng.random(stack.shape) < holes * rng.random((len(seeds), 1, 1))] = np.nan
+    floors = 10.0 ** rng.uniform(-12, -7, len(seeds))
+    options = {"subtract_noise": subtract, "gridding": "cell_mean"}
+    batch = psd.patch_roughness_each(stack, B, noise_psd=floors, **options)
+    alone = []
+    for h, floor in zip(stack, floors, strict=True):
+        try:
+            alone.append(patch_roughness(h, B, noise_psd=float(floor), **options))
+        except PatchError as exc:
+            alone.append(exc)
+    assert all(_same(a, b) for a, b in zip(batch, alone, strict=True))
+    halves = [
+        *psd.patch_roughness_each(stack[:split], B, noise_psd=floors[:split], **options),
+        *psd.patch_roughness_each(stack[split:], B, noise_psd=floors[split:], **options),
+    ]
+    assert all(_same(a, b) for a, b in zip(batch, halves, strict=True))

@@ -1,0 +1,68 @@
+"""features.csv is formatted a column at a time: the same text as formatting each value."""
+
+from __future__ import annotations
+
+import csv
+import io
+from pathlib import Path
+
+import numpy as np
+
+from rough_map.features import FeatureTable, read_features, write_features
+from rough_map.features.files import _column_text, _fmt
+from rough_map.features.table import COLUMNS, INT_COLUMNS, TEXT_COLUMNS
+
+
+def test_column_text_is_each_value_formatted() -> None:
+    columns = [
+        np.array([0.1, -2.5e-7, np.nan, np.inf, -np.inf, 1e300, 0.0, -0.0, 123456789.123]),
+        np.array([1.5, np.nan], dtype=np.float32),
+        np.array([True, False, True]),
+        np.array([0, -3, 2**40], dtype=np.int64),
+        np.array([7, 0], dtype=np.uint8),
+        np.array(["", "A", "gravel", None, 2.5, True], dtype=object),
+        np.array(["a", "b"]),
+        [1, 2.5, 1234567890, True, "x"],  # a list: each value as it is
+    ]
+    for values in columns:
+        assert _column_text(values) == [_fmt(v) for v in values]
+        assert _column_text(values[1:]) == [_fmt(v) for v in values[1:]]
+
+
+def _table(n: int) -> FeatureTable:
+    rng = np.random.default_rng(4)
+    cols: dict[str, np.ndarray] = {}
+    for c in COLUMNS:
+        if c in TEXT_COLUMNS:
+            cols[c] = np.array([f"{c}{i % 3}" if i % 4 else "" for i in range(n)], dtype=object)
+        elif c in INT_COLUMNS:
+            cols[c] = np.arange(n) * 7
+        elif c == "valid":
+            cols[c] = rng.random(n) > 0.3
+        else:
+            v = rng.normal(0, 10, n) * 10.0 ** rng.integers(-8, 8, n)
+            v[rng.random(n) < 0.1] = np.nan
+            cols[c] = v
+    omega = np.array([1.0, 2.0, 4.0])
+    log_psd = rng.normal(-6, 1, (n, 3))
+    return FeatureTable(cols, omega, log_psd, "t")
+
+
+def test_features_csv_is_the_row_by_row_text(tmp_path: Path) -> None:
+    """2,500 rows (more than a block of rows formatted at once): each line is the row's
+    values formatted one by one, and the table reads back."""
+    table = _table(2500)
+    path = write_features(table, tmp_path / "features.csv")
+    names = list(COLUMNS) + table.spectrum_names()
+    data = dict(table.columns)
+    for k, name in enumerate(table.spectrum_names()):
+        data[name] = table.log_psd[:, k]
+    want = io.StringIO(newline="")
+    writer = csv.writer(want)
+    writer.writerow(names)
+    for i in range(len(table)):
+        writer.writerow([_fmt(data[c][i]) for c in names])
+    assert path.read_bytes() == want.getvalue().encode("utf-8")
+    back = read_features(path)
+    assert np.allclose(back["R"], table["R"], rtol=1e-8, atol=0, equal_nan=True)  # 9 digits
+    assert list(back["label"]) == list(table["label"])
