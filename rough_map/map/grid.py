@@ -432,14 +432,5 @@ def from_grid_map(
         m = np.asarray(matrix, dtype=np.float64)
         if m.shape != (nx, ny):
             raise InputError(f"layer {name!r} has shape {m.shape}; grid_map size is {(nx, ny)}")
-        li = info.get(name, LayerInfo(""))
-        grid.add_layer(
-            name,
-            units=li.units,
-            description=li.description,
-            fill=li.fill,
-            kind=li.kind,
-            categories=li.categories,
-            data=m.T[::-1, ::-1],
-        )
+        grid.add_layer_as(name, info.get(name, LayerInfo("")), m.T[::-1, ::-1])
     return grid

@@ -217,7 +217,7 @@ def patch_roughness_each(
             )
         if not (np.isfinite(floors).all() and (floors >= 0).all() and (floors <= 1e6).all()):
             raise InputError("noise_psd must be finite floors in [0, 1e6] m^3/rad")
-        opt = Options(noise_psd=float(floors[0]) if floors.size else None, **options)
+        opt = Options(**options)  # the floors go to the fit as they are
     else:
         opt = Options(noise_psd=noise_psd, **options)
     spacing = check_spacing(spacing)
