@@ -26,7 +26,7 @@ from rough_map.classify import (
     load_roughness_levels,
     load_terrain_model,
 )
-from rough_map.errors import InputError
+from rough_map.errors import InputError, ModelError
 from rough_map.evaluation.near_far import far_field_accuracy
 from rough_map.evaluation.truth import truth_accuracy
 from rough_map.export import export_map
@@ -34,12 +34,13 @@ from rough_map.export.labels import write_labels
 from rough_map.export.png import write_pngs
 from rough_map.features import (
     FeatureTable,
+    FrameStream,
     features_metadata_path,
     frame_jobs,
     iter_frames,
     write_features,
 )
-from rough_map.features.traverse import traverse_pass
+from rough_map.features.traverse import start_frame_pass, traverse_pass
 from rough_map.filter import smooth_table
 from rough_map.io.traverse import Traverse, load_traverse
 from rough_map.io.truth import World, traverse_truth
@@ -149,6 +150,7 @@ def analyse(
     roughness: str = "raw",
     n_jobs: int = 1,
     progress: bool = False,
+    frames: FrameStream | None = None,
 ) -> TraverseAnalysis:
     """Run the chain on a traverse.
 
@@ -191,31 +193,49 @@ def analyse(
         Worker processes for the frames (-1: every core); the result is the same for any.
     progress : bool
         Progress bars on stderr.
+    frames : FrameStream, optional
+        The frame pass, already started on this traverse with the model's extraction
+        (:func:`rough_map.features.traverse.start_frame_pass`, as ``rough-map map`` does
+        before it imports scikit-learn). Without it, a model given by name or path has its
+        pass started from its card before it loads, when ``n_jobs`` is more than one.
 
     Raises
     ------
     InputError
-        An unknown ``roughness``; see also the stages.
+        An unknown ``roughness``; ``frames`` with ``features``; see also the stages.
+    ModelError
+        ``frames`` (or the model's card) set up with another extraction than the model's.
     """
     if roughness not in ROUGHNESS_SOURCES:
         raise InputError(f"roughness must be 'raw' or 'smoothed'; got {roughness!r}")
     if not isinstance(traverse, Traverse):
         traverse = load_traverse(traverse)
-    terrain_model: TerrainModel | None = (
-        model if model is None or isinstance(model, TerrainModel) else _load_model(model)
-    )
-    extraction = Extraction.from_dict(
-        terrain_model.extraction_ if terrain_model is not None else None
-    )
-    mapper = OnlineMapper(
-        terrain_model,
-        resolution=resolution,
-        crs=traverse.spec.crs,
-        calibration=traverse.spec.calibration,
-        extraction=extraction,
-        name=traverse.name,
-    )
-    _frame_pass(traverse, mapper, features, n_jobs, progress, roughness == "raw")
+    if frames is None and features is None:
+        frames = start_frame_pass(
+            traverse, model, resolution=resolution, n_jobs=n_jobs, progress=progress
+        )
+    try:
+        if frames is not None and features is not None:
+            raise InputError("give the features or a started frame pass, not both")
+        terrain_model: TerrainModel | None = (
+            model if model is None or isinstance(model, TerrainModel) else _load_model(model)
+        )
+        extraction = Extraction.from_dict(
+            terrain_model.extraction_ if terrain_model is not None else None
+        )
+        mapper = OnlineMapper(
+            terrain_model,
+            resolution=resolution,
+            crs=traverse.spec.crs,
+            calibration=traverse.spec.calibration,
+            extraction=extraction,
+            name=traverse.name,
+        )
+        _frame_pass(traverse, mapper, features, n_jobs, progress, roughness == "raw", frames)
+    except BaseException:
+        if frames is not None:
+            frames.close()
+        raise
     if features is None:
         features = mapper.features()
     prediction = terrain_model.predict(features) if terrain_model is not None else None
@@ -255,8 +275,10 @@ def _frame_pass(
     n_jobs: int,
     progress: bool,
     roughness: bool = True,
+    frames: FrameStream | None = None,
 ) -> None:
-    """Every frame through the mapper: features (unless given) and heights, classes later."""
+    """Every frame through the mapper: features (unless given) and heights, classes later;
+    ``frames``: the pass, already started (checked to be this one)."""
     jobs = frame_jobs(traverse)
     settings = traverse_pass(
         traverse,
@@ -269,7 +291,17 @@ def _frame_pass(
             f"{traverse.name}: the features have {len(features)} rows, the traverse "
             f"{len(jobs)} frames"
         )
-    outputs = iter_frames(jobs, settings, n_jobs=n_jobs, progress=progress, desc=traverse.name)
+    if frames is not None and frames.settings != settings:
+        raise ModelError(
+            f"{traverse.name}: the frame pass was started with another feature extraction "
+            f"than the model's (its card's feature_extraction is not the model's?): "
+            f"{frames.settings.extraction} against {settings.extraction}"
+        )
+    outputs = (
+        frames
+        if frames is not None
+        else iter_frames(jobs, settings, n_jobs=n_jobs, progress=progress, desc=traverse.name)
+    )
     for out in outputs:
         if features is not None:
             out = replace(out, row=features.row(out.index))

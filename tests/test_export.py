@@ -11,6 +11,7 @@ from rough_map.config import Crs
 from rough_map.errors import InputError
 from rough_map.export import export_map
 from rough_map.export.geotiff import (
+    block_side,
     class_colours,
     overview_factors,
     value_layers,
@@ -427,3 +428,29 @@ def test_export_of_an_empty_map(tmp_path):
         assert np.all(np.isnan(ds.read(1))) and ds.overviews(1)
     with rasterio.open(paths["geotiff_class"]) as ds:
         assert np.all(ds.read(1) == 255)
+
+
+@pytest.mark.parametrize(
+    ("blocksize", "shape", "side"),
+    [
+        ("auto", (30, 18000), 64),
+        ("auto", (100, 900), 128),
+        ("auto", (300, 20), 64),
+        ("auto", (400, 500), 256),
+        (512, (30, 18000), 512),
+    ],
+)
+def test_tile_side_fits_a_narrow_strip(blocksize, shape, side):
+    assert block_side(blocksize, shape) == side
+
+
+def test_a_long_strip_is_written_in_small_tiles(tmp_path, utm_map):
+    path = write_values_geotiff(utm_map, tmp_path / "m.tif")
+    with rasterio.open(path) as ds:
+        want = block_side("auto", ds.shape)
+        assert ds.block_shapes[0] == (want, want)
+        assert want < 256 or min(ds.shape) >= 256
+    pinned = write_values_geotiff(utm_map, tmp_path / "p.tif", profile={"blocksize": 256})
+    with rasterio.open(pinned) as ds, rasterio.open(path) as auto:
+        assert ds.block_shapes[0] == (256, 256)
+        np.testing.assert_array_equal(ds.read(), auto.read())

@@ -2,22 +2,31 @@
 
 from __future__ import annotations
 
+import importlib
+import json
 import math
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from rough_map.classify import load_terrain_model
-from rough_map.errors import FileFormatError, InputError
+from rough_map.cli._common import unused_optional_imports
+from rough_map.errors import FileFormatError, InputError, ModelError
 from rough_map.features import FramePass, frame_jobs, iter_frames, traverse_features
 from rough_map.features.frames import FrameJob, height_sample, process_frame, process_frames
+from rough_map.features.traverse import start_frame_pass
+from rough_map.io.model_files import model_paths
 from rough_map.io.traverse import load_traverse
 from rough_map.map import fuse_traverse
 from rough_map.map.near_far import NearFarSettings
 from rough_map.map.tiles import TiledMap
 from rough_map.online import OnlineMapper
 from rough_map.patch import Extraction
+from rough_map.resources import model_base
 from rough_map.workflow import analyse, write_outputs
 
 
@@ -203,9 +212,13 @@ def test_map_state_rejects_other_files(small_traverse: Path, tmp_path: Path) -> 
         TiledMap(0.1).add_saved(state)
 
 
-def test_outputs_identical_for_any_jobs(small_traverse: Path, model, tmp_path: Path) -> None:
+@pytest.mark.parametrize("by_name", [False, True])
+def test_outputs_identical_for_any_jobs(
+    small_traverse: Path, model, tmp_path: Path, by_name: bool
+) -> None:
+    """By name, ``-j 2`` starts the frames from the model's card before the model loads."""
     for n in (1, 2):
-        result = analyse(small_traverse, model, near_far=False, n_jobs=n)
+        result = analyse(small_traverse, "default" if by_name else model, near_far=False, n_jobs=n)
         write_outputs(result, tmp_path / f"j{n}", png=False)
     names = sorted(p.name for p in (tmp_path / "j1").iterdir())
     assert names == sorted(p.name for p in (tmp_path / "j2").iterdir())
@@ -239,3 +252,52 @@ def test_state_keeps_the_far_field(imaged_traverse: Path, model, tmp_path: Path)
     assert again["count"].sum() == result.map["count"].sum()
     seen = np.isfinite(again["far_class"])
     assert seen.sum() == np.isfinite(result.map["far_class"]).sum()
+
+
+def test_a_started_pass_gives_the_frames_in_order_and_stops_early(small_traverse: Path) -> None:
+    jobs = frame_jobs(load_traverse(small_traverse))
+    alone = [o.row for o in iter_frames(jobs, FramePass(), chunk=2)]
+    primed = iter_frames(jobs, FramePass(), n_jobs=2, chunk=2, prime=5)
+    assert [o.row for o in primed] == alone
+    stopped = iter_frames(jobs, FramePass(), n_jobs=2, chunk=2, prime=5)
+    stopped.close()  # never read: the queued chunks are dropped, nothing waits
+    with pytest.raises(InputError, match="prime"):
+        iter_frames(jobs, FramePass(), prime=-1)
+
+
+def test_a_pass_starts_early_only_from_a_card(small_traverse: Path, model, tmp_path) -> None:
+    trav = load_traverse(small_traverse)
+    assert start_frame_pass(trav, "default", resolution=0.1, n_jobs=1) is None
+    assert start_frame_pass(trav, model, resolution=0.1, n_jobs=2) is None  # no card
+    assert start_frame_pass(trav, tmp_path / "missing", resolution=0.1, n_jobs=2) is None
+    stream = start_frame_pass(trav, "default", resolution=0.1, n_jobs=2)
+    assert stream is not None
+    stream.close()
+    assert stream.settings.extraction == Extraction.from_dict(model.extraction_)
+
+
+def test_a_card_that_lies_about_the_extraction_is_refused(small_traverse, tmp_path) -> None:
+    """The card is not covered by the model's sha256: its extraction, which the frames
+    start on, must be the model's."""
+    model_file, card_file = model_paths(model_base())
+    shutil.copy(model_file, tmp_path / "m.skops")
+    card = json.loads(card_file.read_text(encoding="utf-8"))
+    card["feature_extraction"]["spacing"] = 0.016
+    (tmp_path / "m.card.json").write_text(json.dumps(card), encoding="utf-8")
+    with pytest.raises(ModelError, match="another feature extraction than the model's"):
+        analyse(small_traverse, tmp_path / "m", near_far=False, n_jobs=2)
+
+
+def test_map_runs_without_pandas(small_traverse: Path, tmp_path: Path) -> None:
+    """scikit-learn imports pandas when it can; `rough-map map` keeps it out (63 MB)."""
+    code = (
+        "import sys; from rough_map.cli.main import main; "
+        f"rc = main(['map', {str(small_traverse)!r}, '--out', {str(tmp_path / 'm')!r}, "
+        "'-j', '2', '-q', '--no-png']); print(rc, 'pandas' in sys.modules)"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.stdout.split()[-2:] == ["0", "False"], done.stderr[-2000:]
+    with unused_optional_imports("tabnanny"):
+        with pytest.raises(ImportError):
+            importlib.import_module("tabnanny")
+    assert importlib.import_module("tabnanny").__name__ == "tabnanny"

@@ -14,13 +14,13 @@ and so is a file whose sha256 differs from the one its card records (altered aft
 was written), a file that is not a skops zip, and one that holds anything but a
 ``TerrainModel`` of the current :data:`~rough_map.classify.MODEL_FORMAT`.
 
-Before skops parses a file, its zip is bounded (:mod:`rough_map.classify._archive`: members,
+Before skops parses a file, its zip is bounded (:mod:`rough_map.io._model_archive`: members,
 sizes, compression ratio, ``schema.json`` size and nesting, array headers); after, the
 rebuilt model's structure is checked and it must pass a trial prediction
 (:mod:`rough_map.classify._checks`). Every failure is a one-line :class:`ModelError` naming
 the file.
 
-A model and its card are written as one commit (:mod:`rough_map.classify._commit`): both
+A model and its card are written as one commit (:mod:`rough_map.io._model_commit`): both
 into ``.NAME.pending/``, then a ``complete`` marker, then renamed into place. A save killed
 at any moment leaves the old pair, the new pair, or a pending folder that the next save,
 load or card read of NAME resolves (rolled forward if complete, else discarded).
@@ -32,7 +32,6 @@ import hashlib
 import io
 import json
 import logging
-import os
 import platform
 import zipfile
 from datetime import UTC, datetime
@@ -40,14 +39,22 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from rough_map.classify._archive import MAX_DEPTH, MAX_FILE, brief, check_archive, json_depth
 from rough_map.classify._checks import check_loaded_model
-from rough_map.classify._commit import commit_pair, resolve_pending
 from rough_map.classify.model import MODEL_FORMAT, TerrainModel
 from rough_map.classify.spectral import FEATURE_DOC, INPUT_SCALARS
 from rough_map.config import jsonable
 from rough_map.errors import ModelError
-from rough_map.resources import model_base, shipped_models
+from rough_map.io._model_archive import MAX_FILE, brief, check_archive
+from rough_map.io._model_commit import commit_pair, resolve_pending
+from rough_map.io.model_files import (
+    CARD_FORMAT,
+    CARD_SUFFIX,
+    MODEL_SUFFIX,
+    model_paths,
+    read_card,
+    resolve_model,
+    sha256_file,
+)
 
 log = logging.getLogger(__name__)
 
@@ -62,12 +69,6 @@ __all__ = [
     "save_terrain_model",
     "sha256_file",
 ]
-
-MODEL_SUFFIX = ".skops"
-CARD_SUFFIX = ".card.json"
-CARD_FORMAT = "rough_map model card 1"
-MAX_CARD = 16 * 2**20
-"""Largest model card read, bytes."""
 
 #: Types that skops does not trust by default and that a rough_map model file may hold,
 #: named by the module that defines them (a file records that path). Anything else in a
@@ -87,45 +88,6 @@ TRUSTED_TYPES: tuple[str, ...] = (
 
 #: Libraries whose versions a card records.
 _LIBRARIES = ("numpy", "scipy", "scikit-learn", "skops", "rough-map")
-
-
-def model_paths(name: str | Path) -> tuple[Path, Path]:
-    """The model file and the card of a model name.
-
-    Parameters
-    ----------
-    name : str or Path
-        ``models/NAME``, ``models/NAME.skops`` or ``models/NAME.card.json``.
-
-    Returns
-    -------
-    (Path, Path)
-        ``models/NAME.skops`` and ``models/NAME.card.json``.
-    """
-    if not isinstance(name, str | os.PathLike) or "\0" in os.fspath(name):
-        raise ModelError(f"a model name must be a path (str or Path); got {name!r:.60}")
-    path = Path(name)
-    text = path.name
-    if text in ("", ".", "..") or text in (CARD_SUFFIX, MODEL_SUFFIX):
-        raise ModelError(f"{str(name)!r:.80}: not a model name (models/NAME)")
-    for suffix in (CARD_SUFFIX, MODEL_SUFFIX):
-        if text.endswith(suffix):
-            text = text[: -len(suffix)]
-            break
-    base = path.with_name(text)
-    return base.with_name(text + MODEL_SUFFIX), base.with_name(text + CARD_SUFFIX)
-
-
-def sha256_file(path: str | Path) -> str:
-    """Hex sha256 of a file's bytes."""
-    digest = hashlib.sha256()
-    try:
-        with open(path, "rb") as fh:
-            for block in iter(lambda: fh.read(1 << 20), b""):
-                digest.update(block)
-    except (OSError, ValueError, TypeError) as err:
-        raise ModelError(f"{str(path)!r:.80}: cannot read ({brief(err)})") from None
-    return digest.hexdigest()
 
 
 def _versions() -> dict[str, str]:
@@ -274,53 +236,6 @@ def save_terrain_model(
     return model_file, card_file
 
 
-def read_card(name: str | Path) -> dict[str, Any]:
-    """Read a model card.
-
-    Parameters
-    ----------
-    name : str or Path
-        The model name, its file or its card.
-
-    Raises
-    ------
-    ModelError
-        Missing or unreadable card.
-    """
-    model_file, card_file = model_paths(name)
-    resolve_pending(model_file, card_file)
-    try:
-        if card_file.stat().st_size > MAX_CARD:
-            raise ModelError(f"{card_file}: model card larger than {MAX_CARD} bytes")
-        text = card_file.read_bytes()
-        if json_depth(text) > MAX_DEPTH:
-            raise ModelError(f"{card_file}: model card nested deeper than {MAX_DEPTH}")
-        card = json.loads(text.decode("utf-8"))
-    except FileNotFoundError:
-        raise ModelError(f"{card_file}: no model card") from None
-    except ModelError:
-        raise
-    except Exception as err:  # OSError, UnicodeDecodeError, JSONDecodeError, ...
-        raise ModelError(f"{card_file}: unreadable model card ({brief(err)})") from None
-    if not isinstance(card, dict) or card.get("format") != CARD_FORMAT:
-        raise ModelError(f"{card_file}: not a rough_map model card")
-    if not isinstance(card.get("sha256"), str):
-        raise ModelError(f"{card_file}: the model card has no sha256 string")
-    return card
-
-
-def _resolve(name: str | Path) -> tuple[Path, Path]:
-    """Model and card files of a path, or of a shipped model's bare name."""
-    model_file, card_file = model_paths(name)
-    if model_file.is_file():
-        return model_file, card_file
-    bare = Path(name).name == str(name) and not str(name).endswith(MODEL_SUFFIX)
-    if bare and str(name) in shipped_models():
-        return model_paths(model_base(str(name)))
-    shipped = ", ".join(shipped_models()) or "none"
-    raise ModelError(f"{model_file}: no such model file (models shipped with rough_map: {shipped})")
-
-
 def load_terrain_model(name: str | Path, *, verify: bool = True) -> Any:
     """Load a model written by :func:`save_terrain_model`, safely.
 
@@ -347,7 +262,7 @@ def load_terrain_model(name: str | Path, *, verify: bool = True) -> Any:
     import skops.io as sio
     from skops.io.exceptions import UntrustedTypesFoundException
 
-    model_file, card_file = _resolve(name)
+    model_file, card_file = resolve_model(name)
     resolve_pending(model_file, card_file)
     try:
         size = model_file.stat().st_size

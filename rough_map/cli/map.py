@@ -16,6 +16,7 @@ from rough_map.cli._common import (
     open_traverses,
     status,
     table,
+    unused_optional_imports,
 )
 from rough_map.resources import model_base
 
@@ -77,22 +78,35 @@ def default_model() -> Path:
 
 def run(args: argparse.Namespace) -> int:
     from rough_map.features.frames import start_workers
+    from rough_map.features.traverse import start_frame_pass
 
-    start_workers(args.jobs)  # they import rough_map while this process does
-    from rough_map.workflow import analyse, summary, write_outputs
-
+    start_workers(args.jobs)  # they import rough_map while this process reads the traverse
     out: Path = args.out
     near_far = NEAR_FAR[args.near_far]
     (traverse,) = open_traverses(args, args.traverse)
+    model = args.model or default_model()
+    # The workers start on the frames (the model's extraction is on its card) while this
+    # process imports scikit-learn and loads the model; analyse checks that they agree.
+    frames = start_frame_pass(
+        traverse, model, resolution=args.resolution, n_jobs=args.jobs, progress=args.progress
+    )
+    try:
+        with unused_optional_imports("pandas"):
+            from rough_map.workflow import analyse, summary, write_outputs
+    except BaseException:
+        if frames is not None:
+            frames.close()
+        raise
     result = analyse(
         traverse,
-        args.model or default_model(),
+        model,
         resolution=args.resolution,
         near_far=near_far,
         near_far_settings=near_far_settings(args),
         roughness=args.roughness,
         n_jobs=args.jobs,
         progress=args.progress,
+        frames=frames,
     )
     written = write_outputs(
         result,

@@ -54,6 +54,7 @@ from rough_map.map.grid import GridMap
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "block_side",
     "class_colours",
     "class_layers",
     "overview_factors",
@@ -136,9 +137,23 @@ def _dataset_tags(grid: GridMap) -> dict[str, str]:
 _COMPRESS_THREADS = 2
 
 
-def _creation_options(profile: Mapping[str, Any], driver: str) -> dict[str, Any]:
+def block_side(blocksize: Any, shape: tuple[int, int]) -> int:
+    """The tile side in pixels of a file of ``shape`` (rows, columns) for the profile's
+    ``blocksize``: that number, or for ``"auto"`` 256 unless the map is narrower, then the
+    power of two (at least 64) that covers its short side. A long strip 30 cells wide in
+    256 x 256 tiles would be 88 % padding, which GDAL compresses too: 0.6 s of a 1.8 km map's
+    1.2 s."""
+    if blocksize != "auto":
+        return int(blocksize)
+    short = max(1, min(shape))
+    return 256 if short >= 256 else max(64, 1 << (short - 1).bit_length())
+
+
+def _creation_options(
+    profile: Mapping[str, Any], driver: str, shape: tuple[int, int]
+) -> dict[str, Any]:
     opts: dict[str, Any] = {"COMPRESS": profile["compress"], "NUM_THREADS": _COMPRESS_THREADS}
-    bs = int(profile["blocksize"])
+    bs = block_side(profile["blocksize"], shape)
     if driver == "COG":
         opts.update(
             BLOCKSIZE=bs,
@@ -268,7 +283,9 @@ def _write(
                     )
                     ds.update_tags(ns="rio_overview", resampling=profile["overview_resampling"])
                 with rasterio.open(src_path) as src:
-                    rio_copy(src, tmp, driver=driver, **_creation_options(profile, driver))
+                    rio_copy(
+                        src, tmp, driver=driver, **_creation_options(profile, driver, grid.shape)
+                    )
             finally:
                 src_path.unlink(missing_ok=True)
                 src_path.with_name(f"{src_path.name}.aux.xml").unlink(missing_ok=True)

@@ -47,7 +47,8 @@ class ValuesProfile(Profile):
 
     Keys: ``driver`` (``"COG"``; ``"GTiff"`` with tiles and copied overviews where GDAL has
     no COG driver), ``dtype``, ``nodata``, ``compress``, ``predictor`` (COG: ``"YES"``
-    picks the floating-point predictor), ``blocksize`` (tile side, pixels),
+    picks the floating-point predictor), ``blocksize`` (tile side in pixels, or ``"auto"``:
+    256, or less for a map narrower than that, :func:`rough_map.export.geotiff.block_side`),
     ``overview_resampling`` (a :class:`rasterio.enums.Resampling` name) and
     ``overview_min_size`` (overviews halve the raster until it is at most this many
     pixels across; at least one level is always built).
@@ -59,7 +60,7 @@ class ValuesProfile(Profile):
         "nodata": math.nan,
         "compress": "DEFLATE",
         "predictor": "YES",
-        "blocksize": 256,
+        "blocksize": "auto",
         "overview_resampling": "average",
         "overview_min_size": 16,
     }
@@ -74,7 +75,7 @@ class ClassProfile(Profile):
         "nodata": 255,
         "compress": "DEFLATE",
         "predictor": "NO",
-        "blocksize": 256,
+        "blocksize": "auto",
         "overview_resampling": "mode",
         "overview_min_size": 16,
     }

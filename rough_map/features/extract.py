@@ -167,21 +167,28 @@ def measure_frames(frames: Sequence[GriddedFrame]) -> list[FrameResult]:
         opts = _options(grid, ex)
         key = (ex.patch.spacing, grid.heights.shape, *opts.values())
         groups.setdefault(key, []).append((i, grid))
-    for (spacing, _, method, subtract, gridding), members in groups.items():
-        # each frame's profiles along the direction of travel (rows), then across it
-        stack = np.stack([h for _, g in members for h in (g.heights, g.heights.T)])
-        floors = np.repeat([g.noise_psd for _, g in members], 2)
-        outcomes = patch_roughness_each(
-            stack,
-            spacing,
-            method=method,
-            noise_psd=floors if subtract else None,
-            subtract_noise=subtract,
-            gridding=gridding,
-        )
-        for k, (i, _) in enumerate(members):
-            results[i] = _measured(frames[i].row, outcomes[2 * k], outcomes[2 * k + 1])
+    for (spacing, _, method, subtract, gridding), group in groups.items():
+        for start in range(0, len(group), MEASURE_BATCH):
+            members = group[start : start + MEASURE_BATCH]
+            # each frame's profiles along the direction of travel (rows), then across it
+            stack = np.stack([h for _, g in members for h in (g.heights, g.heights.T)])
+            floors = np.repeat([g.noise_psd for _, g in members], 2)
+            outcomes = patch_roughness_each(
+                stack,
+                spacing,
+                method=method,
+                noise_psd=floors if subtract else None,
+                subtract_noise=subtract,
+                gridding=gridding,
+            )
+            for k, (i, _) in enumerate(members):
+                results[i] = _measured(frames[i].row, outcomes[2 * k], outcomes[2 * k + 1])
     return [r for r in results if r is not None]
+
+
+#: Frames whose patches :func:`measure_frames` measures in one call: 16 frames of 112 x 112
+#: cells keep the estimator's arrays in cache, faster than 32 and half their memory.
+MEASURE_BATCH = 16
 
 
 def _measured(

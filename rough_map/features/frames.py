@@ -33,6 +33,7 @@ from rough_map.geometry import rotation_matrix, transform_columns
 from rough_map.io.pointcloud import read_cloud
 from rough_map.io.traverse import Traverse
 from rough_map.patch import Extraction
+from rough_map.patch._params import check_int
 from rough_map.stereo import read_image, stereo_to_cloud
 
 log = logging.getLogger(__name__)
@@ -42,6 +43,7 @@ __all__ = [
     "FrameJob",
     "FrameOutput",
     "FramePass",
+    "FrameStream",
     "HeightSample",
     "check_jobs",
     "frame_jobs",
@@ -394,8 +396,12 @@ def iter_frames(
     chunk: int = CHUNK,
     progress: bool = False,
     desc: str = "frames",
-) -> Iterator[FrameOutput]:
+    prime: int = 0,
+) -> FrameStream:
     """:func:`process_frame` of every job, in order, over ``n_jobs`` processes.
+
+    The workers start at once, before the first output is asked for: a caller can start the
+    pass, then load what it needs to use the outputs (a model) while they work.
 
     Parameters
     ----------
@@ -404,80 +410,122 @@ def iter_frames(
     settings : FramePass
         How to process them.
     n_jobs : int
-        Worker processes (joblib; -1 all cores). 1 runs in this process.
+        Worker processes (joblib; -1 all cores). 1 runs in this process, as the outputs
+        are asked for.
     chunk : int
         Frames per task (stereo frames: :data:`STEREO_CHUNK` unless given).
     progress : bool
         Progress bar on stderr.
     desc : str
         Its label.
+    prime : int
+        Chunks to queue on the workers at once (at least two per worker are kept queued
+        anyway): work for them while this process does something else first.
 
-    Yields
-    ------
-    FrameOutput
-        One per job, in the order of ``jobs``; the same for any ``n_jobs``.
+    Returns
+    -------
+    FrameStream
+        Iterates the :class:`FrameOutput` of every job, in the order of ``jobs``, the same
+        for any ``n_jobs``; :meth:`FrameStream.close` stops it early.
     """
-    from tqdm import tqdm
-
     workers = check_jobs(n_jobs)
+    check_int("prime", prime, low=0, high=2**31, unit="chunks")
     if chunk == CHUNK and any(_uses_stereo(j, settings) for j in jobs[:chunk]):
         chunk = STEREO_CHUNK
     chunks = [list(jobs[i : i + chunk]) for i in range(0, len(jobs), chunk)]
-    bar = tqdm(total=len(jobs), desc=desc, unit="frame", disable=not progress)
-    try:
-        for outputs in _run_chunks(chunks, settings, workers):
-            bar.update(len(outputs))
-            yield from outputs
-    finally:
-        bar.close()
+    return FrameStream(chunks, settings, workers, prime, progress, desc)
 
 
-def _run_chunks(
-    chunks: list[list[FrameJob]], settings: FramePass, workers: int
-) -> Iterator[list[FrameOutput]]:
-    """The outputs of each chunk, in order, from ``workers`` processes: this one and
-    ``workers - 1`` joblib (loky) workers, so ``-j 2`` costs one extra process, not two.
+class FrameStream:
+    """The outputs of a frame pass under way (:func:`iter_frames`), in frame order.
 
-    The workers always have chunks queued. This process hands the results on in order
-    (the caller fuses them into the map between two chunks) and, whenever the next result
-    is not ready yet, takes the next unstarted chunk itself instead of waiting. So the
-    share of chunks it computes adapts to what the caller does with them: a caller with
-    little work leaves this process about ``1 / workers`` of the chunks; a busy one fewer.
-    The outputs are those of :func:`process_frames` whichever process ran them."""
-    if workers == 1 or len(chunks) <= 1:
-        for c in chunks:
-            yield process_frames(c, settings)
-        return
-    from joblib.externals.loky import get_reusable_executor
+    The chunks run on this process and ``workers - 1`` joblib (loky) workers, so ``-j 2``
+    costs one extra process, not two. The workers always have chunks queued. This process
+    hands the results on in order (the caller fuses them into the map between two chunks)
+    and, whenever the next result is not ready yet, takes the next unstarted chunk itself
+    instead of waiting. So the share of chunks it computes adapts to what the caller does
+    with them: a caller with little work leaves this process about ``1 / workers`` of the
+    chunks; a busy one fewer. The outputs are those of :func:`process_frames` whichever
+    process ran them.
+    """
 
-    executor = get_reusable_executor(max_workers=workers - 1)
-    ahead = 2 * (workers - 1)  # chunks queued on the workers
-    futures: dict[int, Any] = {}
-    mine: dict[int, list[FrameOutput]] = {}  # done here, ahead of their turn
-    unstarted = iter(range(len(chunks)))
-    try:
-        for k in range(len(chunks)):
+    def __init__(
+        self,
+        chunks: list[list[FrameJob]],
+        settings: FramePass,
+        workers: int,
+        prime: int = 0,
+        progress: bool = False,
+        desc: str = "frames",
+    ) -> None:
+        self.settings = settings
+        self._chunks = chunks
+        self._progress = (sum(len(c) for c in chunks), progress, desc)
+        self._futures: dict[int, Any] = {}
+        self._unstarted = iter(range(len(chunks)))
+        self._executor: Any = None
+        self._ahead = 2 * (workers - 1)  # chunks kept queued on the workers
+        # results this process may hold ahead of their turn: as many as the workers were
+        # given at the start, so that it does not wait while they work off that queue
+        self._hold = max(prime, self._ahead)
+        if workers > 1 and len(chunks) > 1:
+            from joblib.externals.loky import get_reusable_executor
+
+            self._executor = get_reusable_executor(max_workers=workers - 1)
+            self._submit(self._hold)
+
+    def _submit(self, upto: int) -> None:
+        while len(self._futures) < upto:
+            nxt = next(self._unstarted, None)
+            if nxt is None:
+                return
+            self._futures[nxt] = self._executor.submit(
+                process_frames, self._chunks[nxt], self.settings
+            )
+
+    def __iter__(self) -> Iterator[FrameOutput]:
+        from tqdm import tqdm
+
+        total, progress, desc = self._progress
+        bar = tqdm(total=total, desc=desc, unit="frame", disable=not progress)
+        try:
+            for outputs in self._outputs():
+                bar.update(len(outputs))
+                yield from outputs
+        finally:
+            bar.close()
+            self.close()
+
+    def _outputs(self) -> Iterator[list[FrameOutput]]:
+        if self._executor is None:
+            for c in self._chunks:
+                yield process_frames(c, self.settings)
+            return
+        mine: dict[int, list[FrameOutput]] = {}  # done here, ahead of their turn
+        for k in range(len(self._chunks)):
             while k not in mine:
-                while len(futures) < ahead:
-                    nxt = next(unstarted, None)
-                    if nxt is None:
-                        break
-                    futures[nxt] = executor.submit(process_frames, chunks[nxt], settings)
-                future = futures.get(k)
-                if future is None or future.done() or len(mine) >= ahead:
+                self._submit(self._ahead)
+                future = self._futures.get(k)
+                if future is None or future.done() or len(mine) >= self._hold:
                     break  # ready, or this process is far enough ahead: wait for it
-                nxt = next(unstarted, None)
+                nxt = next(self._unstarted, None)
                 if nxt is None:
                     break
-                mine[nxt] = process_frames(chunks[nxt], settings)
-            yield mine.pop(k) if k in mine else futures.pop(k).result()
-    finally:
-        for f in futures.values():
+                mine[nxt] = process_frames(self._chunks[nxt], self.settings)
+            yield mine.pop(k) if k in mine else self._futures.pop(k).result()
+
+    def close(self) -> None:
+        """Stop: cancel the chunks not started, and let the workers go."""
+        if self._executor is None:
+            return
+        for f in self._futures.values():
             f.cancel()
+        self._futures.clear()
         # The workers would idle for minutes holding their memory: the map's merge and
         # export come next, and need it more. So would loky's resource tracker (about
         # 40 MB), which has nothing left to track; a later pass starts a new one.
-        executor.shutdown(wait=True)
+        self._executor.shutdown(wait=True)
+        self._executor = None
         _stop_resource_tracker()
 
 

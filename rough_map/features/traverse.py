@@ -25,21 +25,26 @@ from rough_map.features.frames import (
     SOURCES,
     FrameOutput,
     FramePass,
+    FrameStream,
+    check_jobs,
     frame_jobs,
     iter_frames,
     read_points,
 )
 from rough_map.features.table import FeatureTable
+from rough_map.io.model_files import card_extraction
 from rough_map.io.traverse import Traverse, load_traverse
 from rough_map.patch import Extraction, points_in_patch
 
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "PRIME_CHUNKS",
     "SPACING_SAMPLES",
     "FeatureCollector",
     "feature_tables",
     "resolve_spacing",
+    "start_frame_pass",
     "traverse_features",
     "traverse_pass",
 ]
@@ -97,6 +102,57 @@ def traverse_features(
     ):
         collect.add(out)
     return collect.table()
+
+
+#: Chunks queued on the workers when a map's frame pass starts before its model is loaded:
+#: about a second of work for light clouds, which the model's loading takes.
+PRIME_CHUNKS = 16
+
+
+def start_frame_pass(
+    traverse: Traverse,
+    model: Any,
+    *,
+    resolution: float,
+    n_jobs: int,
+    progress: bool = False,
+) -> FrameStream | None:
+    """Start the frame pass of :func:`rough_map.workflow.analyse` (features and heights of
+    every frame) on worker processes before the model is loaded, so that loading it (and
+    importing scikit-learn) does not hold the workers up.
+
+    The model's feature extraction is read from its card
+    (:func:`rough_map.io.model_files.card_extraction`); ``analyse`` checks it against the
+    loaded model. Returns None, and nothing starts, for one process or a model without a
+    readable card (or not given by name or path).
+
+    Parameters
+    ----------
+    traverse : Traverse
+        The traverse.
+    model : str, Path or other
+        The model's name or file, as ``analyse`` takes it.
+    resolution : float
+        The map's cell size in m (the lattice of the frames' height samples).
+    n_jobs : int
+        Processes (-1: every core).
+    progress : bool
+        Progress bar on stderr.
+    """
+    if check_jobs(n_jobs) == 1 or not isinstance(model, str | Path):
+        return None
+    extraction = card_extraction(model)
+    if extraction is None:
+        return None
+    settings = traverse_pass(traverse, extraction, height_resolution=resolution, features=True)
+    return iter_frames(
+        frame_jobs(traverse),
+        settings,
+        n_jobs=n_jobs,
+        progress=progress,
+        desc=traverse.name,
+        prime=PRIME_CHUNKS,
+    )
 
 
 def traverse_pass(

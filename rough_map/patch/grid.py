@@ -166,7 +166,7 @@ def grid_points(
 
 
 def _plane(
-    pts: np.ndarray, spec: PatchSpec, rot: np.ndarray | None, n_sample: int = 10_000
+    pts: np.ndarray, spec: PatchSpec, rot: np.ndarray | None, n_sample: int = 2_500
 ) -> tuple[np.ndarray | None, float]:
     """Least-squares plane of a subsample of the patch's points.
 

@@ -133,9 +133,7 @@ def fit(
     # Standard errors of the patch means, with the correlation between profiles.
     se = standard_errors(b, wv, wm, pr, opt, seg_n=seg_n, bias=bias)
     return list(
-        _results(
-            spectra, opt, b, wv, mean_psd, pr.mask, fit_res, noise, spacing, n, n_dropped, se
-        )
+        _results(spectra, opt, b, wv, mean_psd, pr.mask, fit_res, noise, spacing, n, n_dropped, se)
     )
 
 

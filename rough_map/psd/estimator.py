@@ -352,6 +352,7 @@ def _split(
 ) -> list[Outcome]:
     """The finite patches estimated as they are, the others through the gap policy, back
     in order."""
+
     def sub(mask: np.ndarray) -> np.ndarray | None:
         return None if floors is None else floors[mask]
 

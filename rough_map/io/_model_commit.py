@@ -19,8 +19,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 from rough_map._files import fsync_dir, fsync_file, write_error
-from rough_map.classify._archive import brief
 from rough_map.errors import ModelError
+from rough_map.io._model_archive import brief
 
 log = logging.getLogger(__name__)
 
