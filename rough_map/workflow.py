@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -460,10 +461,13 @@ def _write_outputs(
     progress: bool,
 ) -> dict[str, Path]:
     grid = result.map
-    written = export_map(grid, out, name="map", png=False, gridmap_bag=gridmap_bag)
-    if png:
-        for name, path in write_pngs(grid, out, "map", progress=progress).items():
-            written[f"png_{name}"] = path
+    # The GeoTIFFs on a second thread beside the PNGs: GDAL compresses without the GIL,
+    # matplotlib draws with it, so the two take little more than the PNGs alone.
+    with ThreadPoolExecutor(1) as pool:
+        files = pool.submit(export_map, grid, out, name="map", png=False, gridmap_bag=gridmap_bag)
+        pngs = write_pngs(grid, out, "map", progress=progress) if png else {}
+        written = files.result()
+    written.update({f"png_{name}": path for name, path in pngs.items()})
     written.update(write_tables(result, out))
     if state and result.mapper is not None:
         written["state"] = result.mapper.save_state(out / "map_state.npz")

@@ -93,6 +93,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         with unused_optional_imports("pandas"):
             from rough_map.workflow import analyse, summary, write_outputs
+        if frames is not None and not args.no_png:
+            import matplotlib.backends.backend_agg  # noqa: F401  # for the PNGs, meanwhile
     except BaseException:
         if frames is not None:
             frames.close()

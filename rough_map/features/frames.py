@@ -100,6 +100,7 @@ def frame_jobs(traverse: Traverse) -> list[FrameJob]:
     """The :class:`FrameJob` of every frame of ``traverse``, with its paths resolved (and
     checked to stay inside the traverse folder: :meth:`Traverse.resolve`)."""
     jobs = []
+    resolve = traverse.resolver()
     for i, f in enumerate(traverse.frames):
         p = f.pose
         jobs.append(
@@ -108,9 +109,9 @@ def frame_jobs(traverse: Traverse) -> list[FrameJob]:
                 t=f.t,
                 pose=(p.x, p.y, p.z, p.roll, p.pitch, p.yaw),
                 label=f.label or "",
-                cloud=None if f.cloud is None else traverse.resolve(f.cloud, f"frames[{i}].cloud"),
-                left=None if f.left is None else traverse.resolve(f.left, f"frames[{i}].left"),
-                right=None if f.right is None else traverse.resolve(f.right, f"frames[{i}].right"),
+                cloud=None if f.cloud is None else resolve(f.cloud, f"frames[{i}].cloud"),
+                left=None if f.left is None else resolve(f.left, f"frames[{i}].left"),
+                right=None if f.right is None else resolve(f.right, f"frames[{i}].right"),
                 imu=None if f.imu is None else (f.imu.roll, f.imu.pitch),
             )
         )

@@ -105,8 +105,9 @@ def traverse_features(
 
 
 #: Chunks queued on the workers when a map's frame pass starts before its model is loaded:
-#: about a second of work for light clouds, which the model's loading takes.
-PRIME_CHUNKS = 16
+#: about two seconds of work for light clouds, what importing scikit-learn and matplotlib
+#: and loading the model take.
+PRIME_CHUNKS = 32
 
 
 def start_frame_pass(

@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Iterable
+import os
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -124,21 +125,47 @@ class Traverse:
             The path cannot be resolved (too long, a loop of links) or resolves outside the
             allowed folders; the message names the field.
         """
-        try:
-            real = (self.root / relative).resolve()
-            allowed = [self.root.resolve(), *(Path(p).resolve() for p in self.allow_outside)]
-        except (OSError, RuntimeError, ValueError) as err:
-            reason = getattr(err, "strerror", None) or str(err)
-            raise self._error(
-                field, f"{short(relative, 50)} cannot be resolved: {clip(reason, 50)}"
-            ) from None
-        if not any(real.is_relative_to(folder) for folder in allowed):
-            raise self._error(
-                field,
-                f"{short(relative, 50)} resolves outside the traverse folder "
-                "(pass --allow-outside DIR to allow)",
-            )
-        return real
+        return self.resolver()(relative, field)
+
+    def resolver(self) -> Callable[[str, str], Path]:
+        """:meth:`resolve`, for many paths: the real paths of the allowed folders and of
+        the folders holding the files are found once (an hour of frames names 7,200
+        clouds in one folder), then only a file that is itself a link is followed anew."""
+        allowed: list[Path] | None = None
+        folders: dict[Path, Path] = {}
+
+        def real_path(path: Path) -> Path:
+            if path.name in ("", ".", ".."):
+                return path.resolve()
+            folder = folders.get(path.parent)
+            if folder is None:
+                folder = folders[path.parent] = path.parent.resolve()
+            file = folder / path.name
+            return file.resolve() if os.path.islink(file) else file
+
+        def resolve(relative: str, field: str = "path") -> Path:
+            nonlocal allowed
+            try:
+                real = real_path(self.root / relative)
+                if allowed is None:
+                    allowed = [
+                        self.root.resolve(),
+                        *(Path(p).resolve() for p in self.allow_outside),
+                    ]
+            except (OSError, RuntimeError, ValueError) as err:
+                reason = getattr(err, "strerror", None) or str(err)
+                raise self._error(
+                    field, f"{short(relative, 50)} cannot be resolved: {clip(reason, 50)}"
+                ) from None
+            if not any(real.is_relative_to(folder) for folder in allowed):
+                raise self._error(
+                    field,
+                    f"{short(relative, 50)} resolves outside the traverse folder "
+                    "(pass --allow-outside DIR to allow)",
+                )
+            return real
+
+        return resolve
 
     def _is_file(self, path: Path, field: str, relative: str) -> bool:
         try:

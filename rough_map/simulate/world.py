@@ -27,7 +27,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 
 from rough_map import terrain
 from rough_map.errors import InputError
@@ -248,6 +247,8 @@ def _coarse_envelope(
 ) -> tuple[np.ndarray, int]:
     """The coarse grid of :func:`_envelope` over a world of ``shape`` cells, and its step
     in cells (a few per correlation length)."""
+    from scipy import ndimage  # here: every command's parser reads COURSES from this module
+
     step = max(1, int(length / 8 / spacing))
     coarse_shape = (shape[0] // step + 3, shape[1] // step + 3)
     g = ndimage.gaussian_filter(
@@ -363,6 +364,8 @@ def attitude(
     smoothed, so that a window of the world (covering :func:`attitude_reach` around every
     pose) gives the values the whole world gives.
     """
+    from scipy import ndimage  # see _coarse_envelope
+
     sigma = max(1.0, rover.wheel_radius / 2 / world.spacing)
     c, s = np.cos(yaw), np.sin(yaw)
     hw, ht = rover.wheelbase / 2, rover.track / 2
