@@ -162,3 +162,18 @@ def test_bad_angles():
         compensate_tilt(np.zeros((3, 3)), float("nan"), 0.0)
     with pytest.raises(InputError, match="pitch"):
         grid_points(np.zeros((3, 3)), pitch=4.0)
+
+
+@pytest.mark.parametrize("width", [1.2, 20.0])
+def test_a_tilted_patch_is_levelled_however_wide_the_cloud(width: float) -> None:
+    """The patch's plane comes from a subsample of the cloud; when the cloud is a wide scan
+    with a fraction of a per cent of its points over the patch, from a denser one."""
+    rng = np.random.default_rng(3)
+    n = 200_000
+    x = rng.uniform(1.0 - width / 2, 1.0 + width / 2, n)
+    y = rng.uniform(-width / 2, width / 2, n)
+    z = math.tan(math.radians(5.0)) * x + rng.normal(0.0, 0.002, n)
+    grid = grid_points(np.column_stack([x, y, z]), min_points=100)
+    assert grid.level_angle == pytest.approx(math.radians(5.0), abs=math.radians(0.05))
+    flat = grid_points(np.column_stack([x, y, z - math.tan(math.radians(5.0)) * x]))
+    assert flat.level_angle == 0.0

@@ -457,6 +457,7 @@ def _forward(
     back = np.linalg.inv(to_level)
     level_var = np.diag(np.diag(to_level @ cov @ to_level.T))
     kf = KalmanFilter(dim_x=2, dim_z=2)
+    kf.inv = _inv2  # its gain's inverse, per frame
     kf.F = eye.copy()
     kf.H = eye.copy()
     kf.x = np.zeros(2)
@@ -491,7 +492,7 @@ def _forward(
                     d = np.concatenate([d, np.zeros((1, 2))])
                     C = np.concatenate([C, np.zeros((1, 2, 2))])
                 if onsets:
-                    Si = np.linalg.inv(kf.P + R_i)
+                    Si = _inv2(kf.P + R_i)
                     GtSi = np.transpose(G, (0, 2, 1)) @ Si
                     d = d + GtSi @ (z[i] - kf.x)
                     C = C + GtSi @ G
@@ -517,6 +518,16 @@ def _forward(
 
 
 # ------------------------------------------------------------------------- helpers
+
+
+def _inv2(m: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The inverse of a 2 x 2 matrix, written out: the filter inverts two a frame, and
+    LAPACK's call costs several times the arithmetic at this size."""
+    (a, b), (c, d) = m.tolist()
+    det = a * d - b * c
+    if det == 0.0 or not math.isfinite(det):
+        return np.asarray(np.linalg.inv(m), dtype=float)  # a singular one raises, as before
+    return np.array([[d / det, -b / det], [-c / det, a / det]])
 
 
 def _array(values: ArrayLike, name: str, n: int | None = None) -> NDArray[np.float64]:

@@ -166,33 +166,57 @@ def grid_points(
 
 
 def _plane(
-    pts: np.ndarray, spec: PatchSpec, rot: np.ndarray | None, n_sample: int = 2_500
+    pts: np.ndarray, spec: PatchSpec, rot: np.ndarray | None, n_sample: int = 1_200
 ) -> tuple[np.ndarray | None, float]:
-    """Least-squares plane of a subsample of the patch's points.
+    """Least-squares plane of about ``n_sample`` of the patch's points: every k-th point
+    of the cloud, and when most of those fall outside the patch (a wide lidar scan), a
+    denser subsample sized by how many fell inside.
 
     Returns the unit normal (z > 0) and the plane's z at the patch centre; (None, nan) if
     too few points fall in the patch.
     """
-    q = pts[:: max(1, len(pts) // n_sample)]
+    step = max(1, len(pts) // n_sample)
+    sums, count = _plane_sums(pts[::step], spec, rot)
+    if count < n_sample // 4 and step > 1:
+        step = max(1, step * count // n_sample)
+        sums, count = _plane_sums(pts[::step], spec, rot)
+    if count < 10:
+        return None, math.nan
+    sx, sy, sxx, syy, sxy, sz, sxz, syz = sums
+    ata = [[count, sx, sy], [sx, sxx, sxy], [sy, sxy, syy]]
+    try:
+        coef = np.linalg.solve(np.array(ata), np.array([sz, sxz, syz]))
+    except np.linalg.LinAlgError:
+        return None, math.nan
+    normal = np.array([-coef[1], -coef[2], 1.0])
+    return normal / np.linalg.norm(normal), float(coef[0])
+
+
+def _plane_sums(
+    q: np.ndarray, spec: PatchSpec, rot: np.ndarray | None
+) -> tuple[tuple[float, ...], int]:
+    """The sums of the 3 x 3 normal equations of a plane through the points of ``q`` over
+    the patch (neither lstsq on the points nor a BLAS product of the (N, 3) design matrix:
+    both far slower for three columns), and how many points they hold."""
     x, y, z = transform_columns(q, rot) if rot is not None else (q[:, 0], q[:, 1], q[:, 2])
     half = 0.5 * spec.n * spec.spacing
     dx, dy = x - spec.ahead, y - spec.lateral
     ok = (np.abs(dx) < half) & (np.abs(dy) < half) & np.isfinite(z)
     count = int(ok.sum())
     if count < 10:
-        return None, math.nan
+        return (), count
     dx, dy, z = dx[ok], dy[ok], z[ok]
-    # The 3 x 3 normal equations, from sums of products (neither lstsq on the points nor a
-    # BLAS product of the (N, 3) design matrix: both far slower for three columns).
-    sx, sy, sxy = float(dx.sum()), float(dy.sum()), float((dx * dy).sum())
-    ata = [[count, sx, sy], [sx, float((dx * dx).sum()), sxy], [sy, sxy, float((dy * dy).sum())]]
-    atz = [float(z.sum()), float((dx * z).sum()), float((dy * z).sum())]
-    try:
-        coef = np.linalg.solve(np.array(ata), np.array(atz))
-    except np.linalg.LinAlgError:
-        return None, math.nan
-    normal = np.array([-coef[1], -coef[2], 1.0])
-    return normal / np.linalg.norm(normal), float(coef[0])
+    sums = (
+        dx.sum(),
+        dy.sum(),
+        (dx * dx).sum(),
+        (dy * dy).sum(),
+        (dx * dy).sum(),
+        z.sum(),
+        (dx * z).sum(),
+        (dy * z).sum(),
+    )
+    return tuple(float(v) for v in sums), count
 
 
 def _grid(pts, spec, rot, offset, min_points, estimate_noise) -> GriddedPatch:
