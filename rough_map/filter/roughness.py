@@ -458,8 +458,7 @@ def _forward(
     level_var = np.diag(np.diag(to_level @ cov @ to_level.T))
     kf = KalmanFilter(dim_x=2, dim_z=2)
     kf.inv = _inv2  # its gain's inverse, per frame
-    kf.F = eye.copy()
-    kf.H = eye.copy()
+    kf.F, kf.H = eye.copy(), eye.copy()
     kf.x = np.zeros(2)
     kf.P = _DIFFUSE * eye
     xs = np.zeros((n, 2))
