@@ -284,7 +284,7 @@ class OnlineMapper:
             observation = _observation(row, probs, level)
             if not roughness:
                 observation["R"] = math.nan  # fused later (fuse_classes)
-            touched = self.tiles.fuse_patch(x, y, yaw, **observation)
+            touched = self.tiles.fuse_patch(x, y, yaw, keep_box=not classes, **observation)
         if out.heights is not None:
             h = out.heights
             self.tiles.add_heights(h.rows, h.cols, h.sums, h.counts)
@@ -394,7 +394,8 @@ class OnlineMapper:
             level = float(level_of[i])
             if probs is None and not math.isfinite(level) and not rough:
                 continue
-            self.tiles.fuse_patch(x, y, yaw, probs=probs, level=level, count=False, **rough)
+            fused: dict[str, Any] = {"probs": probs, "level": level, "count": False, **rough}
+            self.tiles.fuse_patch(x, y, yaw, **fused)
             self.tiles.evict(x, y, self.window)
 
     def finish(self, *, margin: float = 1.0) -> GridMap:

@@ -14,6 +14,7 @@ import logging
 from pathlib import Path
 
 from rough_map._files import make_dir
+from rough_map.errors import InputError
 from rough_map.export.geotiff import (
     class_layers,
     value_layers,
@@ -36,6 +37,7 @@ def export_map(
     name: str = "map",
     png: bool = True,
     gridmap_bag: bool = False,
+    threads: int = 2,
 ) -> dict[str, Path]:
     """Write a map's files to ``out_dir`` (created if missing).
 
@@ -51,6 +53,9 @@ def export_map(
         Also draw one PNG per exported layer.
     gridmap_bag : bool
         Also write a ``grid_map_msgs/msg/GridMap`` in a ROS 2 MCAP bag.
+    threads : int
+        GDAL threads compressing each GeoTIFF (the profiles' ``threads``; one when
+        something else keeps the other core busy). The files are the same for any number.
 
     Returns
     -------
@@ -64,10 +69,15 @@ def export_map(
     out = Path(out_dir)
     make_dir(out)
     paths: dict[str, Path] = {}
+    if not isinstance(threads, int) or isinstance(threads, bool) or not 1 <= threads <= 256:
+        raise InputError(f"threads must be a number of threads from 1 to 256, got {threads!r}")
+    profile = {"threads": threads}
     if value_layers(grid):
-        paths["geotiff"] = write_values_geotiff(grid, out / f"{name}.tif")
+        paths["geotiff"] = write_values_geotiff(grid, out / f"{name}.tif", profile=profile)
     for layer in class_layers(grid):
-        paths[f"geotiff_{layer}"] = write_class_geotiff(grid, out / f"{name}_{layer}.tif", layer)
+        paths[f"geotiff_{layer}"] = write_class_geotiff(
+            grid, out / f"{name}_{layer}.tif", layer, profile=profile
+        )
     if png:
         for layer, p in write_pngs(grid, out, name).items():
             paths[f"png_{layer}"] = p

@@ -133,10 +133,6 @@ def _dataset_tags(grid: GridMap) -> dict[str, str]:
     return tags
 
 
-#: GDAL threads compressing a file's tiles (the file is the same bytes for any number).
-_COMPRESS_THREADS = 2
-
-
 def block_side(blocksize: Any, shape: tuple[int, int]) -> int:
     """The tile side in pixels of a file of ``shape`` (rows, columns) for the profile's
     ``blocksize``: that number, or for ``"auto"`` 256 unless the map is narrower, then the
@@ -152,7 +148,8 @@ def block_side(blocksize: Any, shape: tuple[int, int]) -> int:
 def _creation_options(
     profile: Mapping[str, Any], driver: str, shape: tuple[int, int]
 ) -> dict[str, Any]:
-    opts: dict[str, Any] = {"COMPRESS": profile["compress"], "NUM_THREADS": _COMPRESS_THREADS}
+    threads = int(profile["threads"])  # the file is the same bytes for any number
+    opts: dict[str, Any] = {"COMPRESS": profile["compress"], "NUM_THREADS": threads}
     bs = block_side(profile["blocksize"], shape)
     if driver == "COG":
         opts.update(

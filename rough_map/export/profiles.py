@@ -49,9 +49,10 @@ class ValuesProfile(Profile):
     no COG driver), ``dtype``, ``nodata``, ``compress``, ``predictor`` (COG: ``"YES"``
     picks the floating-point predictor), ``blocksize`` (tile side in pixels, or ``"auto"``:
     256, or less for a map narrower than that, :func:`rough_map.export.geotiff.block_side`),
-    ``overview_resampling`` (a :class:`rasterio.enums.Resampling` name) and
+    ``overview_resampling`` (a :class:`rasterio.enums.Resampling` name),
     ``overview_min_size`` (overviews halve the raster until it is at most this many
-    pixels across; at least one level is always built).
+    pixels across; at least one level is always built) and ``threads`` (GDAL threads
+    compressing the tiles; the file is the same bytes for any number).
     """
 
     defaults: ClassVar[dict[str, Any]] = {
@@ -63,6 +64,7 @@ class ValuesProfile(Profile):
         "blocksize": "auto",
         "overview_resampling": "average",
         "overview_min_size": 16,
+        "threads": 2,
     }
 
 
@@ -78,6 +80,7 @@ class ClassProfile(Profile):
         "blocksize": "auto",
         "overview_resampling": "mode",
         "overview_min_size": 16,
+        "threads": 2,
     }
 
 

@@ -2,12 +2,11 @@
 
 :class:`TiledMap` holds the accumulator layers of :mod:`rough_map.map.layers` in tiles of
 ``tile_cells`` x ``tile_cells`` cells. Patches and height samples are fused into the tiles
-they touch; :meth:`TiledMap.evict` writes the tiles far from the vehicle to a folder and
-forgets them, and a tile that is needed again is read back (and, left unchanged, is not
-written again: :mod:`rough_map.map.tile_files`). :meth:`TiledMap.merged` puts
-their estimates (not their sums) into one :class:`~rough_map.map.grid.GridMap` at the end.
-Fusion only adds to sums (and ``last_seen`` is a max), so the tiled map equals the one fused
-in a single grid, bit for bit.
+they touch; :meth:`TiledMap.evict` writes the tiles far from the vehicle to a folder, and a
+tile needed again is read back (left unchanged, it is not written again:
+:mod:`rough_map.map.tile_files`). :meth:`TiledMap.merged` puts their estimates (not their
+sums) into one :class:`~rough_map.map.grid.GridMap`. Fusion only adds to sums (and
+``last_seen`` is a max), so the tiled map equals the one fused in one grid, bit for bit.
 
 The sums themselves are the map's *state*: :meth:`TiledMap.save` writes them (tile by tile,
 never all in memory) to one ``.npz`` file, and :meth:`TiledMap.add_saved` adds a saved state
@@ -118,6 +117,7 @@ class TiledMap:
         self.groups: tuple[str, ...] = ("near",)
         self._template: list[tuple[str, Any]] | None = None
         self._attrs: dict[str, Any] = {}
+        self._boxes: dict[tuple[float, float, float], Any] = {}  # kept for a second fusion
         self._own_dir = spill_dir is None
         if spill_dir is None:  # those of killed runs
             clean_dead_temp_dirs(_SPILL_PREFIX)
@@ -155,14 +155,8 @@ class TiledMap:
         return len(self._tiles)
 
     def _tile_geometry(self, key: tuple[int, int]) -> GridGeometry:
-        side = self.tile_size
-        return GridGeometry(
-            self.resolution,
-            (key[1] * side, key[0] * side),
-            (self.tile_cells, self.tile_cells),
-            self.geometry.crs,
-            self.geometry.frame_id,
-        )
+        side, n, g = self.tile_size, self.tile_cells, self.geometry
+        return GridGeometry(g.resolution, (key[1] * side, key[0] * side), (n, n), g.crs, g.frame_id)
 
     def _blank(self, geometry: GridGeometry) -> GridMap:
         """A grid with the accumulator layers only (what fusion adds to); their list is
@@ -248,17 +242,22 @@ class TiledMap:
         """Make :meth:`merged` cover the patch seen from this pose (m, rad), fused or not."""
         self._grow(patch_bounds(x, y, yaw, self.spec))
 
-    def fuse_patch(self, x: float, y: float, yaw: float, **observation: Any) -> int:
-        """Fuse one frame's patch (as :func:`rough_map.map.fusion.fuse_patch`: ``t``,
-        ``R``, ``w``, ``sigma_R``, ``sigma_w``, ``probs``, ``level``, ``count``) into the
-        tiles it covers; returns how many cells it covered.
-
-        Each cell the patch covers gets the patch's sums
-        (:func:`rough_map.map.fusion.patch_sums`) added, as
-        :func:`~rough_map.map.fusion.fuse_patch` adds them in a grid covering the patch."""
+    def fuse_patch(
+        self, x: float, y: float, yaw: float, *, keep_box: bool = False, **observation: Any
+    ) -> int:
+        """Fuse one frame's patch (as :func:`rough_map.map.fusion.fuse_patch`: ``t``, ``R``,
+        ``w``, ``sigma_R``, ``sigma_w``, ``probs``, ``level``, ``count``) into the tiles it
+        covers, each cell getting the patch's sums (:func:`~rough_map.map.fusion.patch_sums`);
+        returns how many cells it covered. ``keep_box``: keep this pose's cells for the next
+        fusion at it, which takes them (a traverse's classes come in a second pass)."""
         if not all(math.isfinite(v) for v in (x, y, yaw)):
             raise InputError(f"pose must be finite (x, y in m, yaw in rad), got {(x, y, yaw)}")
-        bounds, r0, c0, inside = lattice_patch_box(x, y, yaw, self.spec, self.resolution)
+        box = self._boxes.pop((x, y, yaw), None)
+        if box is None:
+            box = lattice_patch_box(x, y, yaw, self.spec, self.resolution)
+        if keep_box:
+            self._boxes[(x, y, yaw)] = box
+        bounds, r0, c0, inside = box
         self._grow(bounds)
         sums = patch_sums(self.class_names, self.level_names, **observation)
         t = observation.get("t", math.nan)
@@ -588,6 +587,7 @@ class TiledMap:
             self._path(key).unlink(missing_ok=True)
         self._spilled.clear()
         self._tiles.clear()
+        self._boxes.clear()
         if self._own_dir:
             shutil.rmtree(self._dir, ignore_errors=True)
 
