@@ -203,9 +203,11 @@ def analyse(
     Raises
     ------
     InputError
-        An unknown ``roughness``; ``frames`` with ``features``; see also the stages.
+        An unknown ``roughness``; ``frames`` with ``features``, or set up for another
+        traverse; see also the stages.
     ModelError
-        ``frames`` (or the model's card) set up with another extraction than the model's.
+        ``frames`` set up with another feature extraction than the model's (its card's,
+        which is not covered by the model file's sha256, edited or of another model).
     """
     if roughness not in ROUGHNESS_SOURCES:
         raise InputError(f"roughness must be 'raw' or 'smoothed'; got {roughness!r}")
@@ -224,6 +226,8 @@ def analyse(
         extraction = Extraction.from_dict(
             terrain_model.extraction_ if terrain_model is not None else None
         )
+        if frames is not None and frames.settings.extraction != extraction:
+            raise ModelError(f"{model}: {_card_differs(frames.settings.extraction, extraction)}")
         mapper = OnlineMapper(
             terrain_model,
             resolution=resolution,
@@ -293,11 +297,7 @@ def _frame_pass(
             f"{len(jobs)} frames"
         )
     if frames is not None and frames.settings != settings:
-        raise ModelError(
-            f"{traverse.name}: the frame pass was started with another feature extraction "
-            f"than the model's (its card's feature_extraction is not the model's?): "
-            f"{frames.settings.extraction} against {settings.extraction}"
-        )
+        raise InputError(f"{traverse.name}: the frame pass given was set up for another traverse")
     outputs = (
         frames
         if frames is not None
@@ -307,6 +307,18 @@ def _frame_pass(
         if features is not None:
             out = replace(out, row=features.row(out.index))
         mapper.add(out, jobs[out.index].pose, classes=False, roughness=roughness)
+
+
+def _card_differs(card: Extraction, model: Extraction) -> str:
+    """Why a model's card is refused: the settings where its extraction differs."""
+    a, b = card.to_dict(), model.to_dict()
+    diff = ", ".join(
+        f"{k} {a.get(k)!r} against {b.get(k)!r}" for k in a | b if a.get(k) != b.get(k)
+    )
+    return (
+        f"the feature extraction on its card is not the model's ({diff}): the card was edited "
+        "or belongs to another model; refusing it"
+    )
 
 
 def _smoothed(features: FeatureTable) -> dict[str, np.ndarray]:

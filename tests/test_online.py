@@ -287,7 +287,11 @@ def test_a_card_that_lies_about_the_extraction_is_refused(small_traverse, tmp_pa
     card = json.loads(card_file.read_text(encoding="utf-8"))
     card["feature_extraction"]["spacing"] = 0.016
     (tmp_path / "m.card.json").write_text(json.dumps(card), encoding="utf-8")
-    with pytest.raises(ModelError, match="another feature extraction than the model's"):
+    with pytest.raises(
+        ModelError,
+        match=r"m: the feature extraction on its card is not the "
+        r"model's \(spacing 0\.016 against 0\.008\)",
+    ):
         analyse(small_traverse, tmp_path / "m", near_far=False, n_jobs=2)
 
 
