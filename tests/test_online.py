@@ -261,7 +261,8 @@ def test_a_started_pass_gives_the_frames_in_order_and_stops_early(small_traverse
     assert len(primed) == len(alone)
     for a, b in zip(primed, alone, strict=True):  # NaN from another process is another NaN
         assert a.keys() == b.keys()
-        assert all(a[k] == b[k] or (a[k] != a[k] and b[k] != b[k]) for k in a), (a, b)
+        differ = [k for k in a if not (a[k] == b[k] or (a[k] != a[k] and b[k] != b[k]))]
+        assert not differ, [(k, a[k], b[k]) for k in differ]
     stopped = iter_frames(jobs, FramePass(), n_jobs=2, chunk=2, prime=5)
     stopped.close()  # never read: the queued chunks are dropped, nothing waits
     with pytest.raises(InputError, match="prime"):

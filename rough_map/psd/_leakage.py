@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +22,7 @@ from rough_map._files import atomic_output
 from rough_map.errors import InputError
 from rough_map.iso8608 import surface_constant
 from rough_map.patch._params import MAX_SAMPLES, check_int
+from rough_map.psd._cache import table_cache
 from rough_map.psd._spectra import frozen, hann_plan
 
 #: Waviness grid of the tables (dimensionless).
@@ -45,7 +45,7 @@ def check_gridding(gridding: str) -> None:
         raise InputError(f"gridding must be one of {GRIDDINGS}, got {gridding!r:.40}")
 
 
-@lru_cache(maxsize=32)
+@table_cache(32)
 def leakage_table(n: int, window: str, gridding: str = "point") -> np.ndarray:
     """:func:`compute_leakage_table`, read from the shipped tables when they hold it.
 

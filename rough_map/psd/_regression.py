@@ -10,10 +10,10 @@ projection on them.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
 
 import numpy as np
 
+from rough_map.psd._cache import table_cache
 from rough_map.psd._leakage import leakage_table
 from rough_map.psd._spectra import frozen
 
@@ -49,7 +49,7 @@ class FitPlan:
     leak_a: np.ndarray
 
 
-@lru_cache(maxsize=64)
+@table_cache(64)
 def fit_plan(
     n_bins: int, seg_n: int, method: str, spacing: float, omega0: float, window: str, gridding: str
 ) -> FitPlan:

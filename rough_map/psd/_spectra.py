@@ -7,13 +7,13 @@ arrays are read-only, so that no caller can change what the next call gets.
 from __future__ import annotations
 
 import math
-from functools import lru_cache
 
 import numpy as np
 import scipy.fft
 
 from rough_map.errors import InputError
 from rough_map.patch._params import MAX_CELLS, check_int
+from rough_map.psd._cache import table_cache
 
 #: Windows the estimator is known to work with (any scipy window name that needs no
 #: parameter is accepted).
@@ -61,7 +61,7 @@ def get_window(window: str, n: int) -> np.ndarray:
     return np.asarray(signal.get_window(window, n), dtype=float)
 
 
-@lru_cache(maxsize=32)
+@table_cache(32)
 def hann_plan(n: int, window: str) -> tuple[np.ndarray, np.ndarray, float]:
     """Window, orthonormal detrend basis (n, 2) and ``sum(window^2)`` for ``n`` samples."""
     win = get_window(window, n)
@@ -101,7 +101,7 @@ def log_bias(window: str, nperseg: int, noverlap: int, n: int) -> float:
     return _log_bias(window, int(nperseg), int(noverlap), int(n))
 
 
-@lru_cache(maxsize=64)
+@table_cache(64)
 def _log_bias(window: str, nperseg: int, noverlap: int, n: int) -> float:
     """:func:`log_bias` of checked arguments (cached)."""
     step = nperseg - noverlap
@@ -123,7 +123,7 @@ def _log_bias(window: str, nperseg: int, noverlap: int, n: int) -> float:
     return float(special.digamma(nu / 2) - math.log(nu / 2))
 
 
-@lru_cache(maxsize=32)
+@table_cache(32)
 def _fast_plan(n: int, window: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """float32 window, detrend basis, spectrum of the windowed basis, and density scale."""
     win, basis, wss = hann_plan(n, window)

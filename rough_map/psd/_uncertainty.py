@@ -50,10 +50,10 @@ neighbouring profiles are more alike than the model says and the se is too small
 from __future__ import annotations
 
 import math
-from functools import lru_cache
 
 import numpy as np
 
+from rough_map.psd._cache import table_cache
 from rough_map.psd._leakage import _cell_mean_gain
 from rough_map.psd._options import Options
 from rough_map.psd._regression import Projections
@@ -81,7 +81,7 @@ def lag_grid(seg_n: int) -> np.ndarray:
     return np.unique(lags[lags <= top])
 
 
-@lru_cache(maxsize=8)
+@table_cache(8)
 def _kernels(seg_n: int, window: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Wavenumbers ``nu`` (rad per sample), their weights and the complex response of each
     ordinate k = 1 ... seg_n/2 to a unit sinusoid of each ``nu`` and of ``-nu`` after the
@@ -161,7 +161,7 @@ def _log_covariance(r2: np.ndarray, alpha: float) -> np.ndarray:
     return np.where(r2 >= 1.0, special.polygamma(1, alpha), out)
 
 
-@lru_cache(maxsize=8)
+@table_cache(8)
 def log_covariances(seg_n: int, window: str, gridding: str, alpha: float) -> np.ndarray:
     """``Cov(ln P_{i,k}, ln P_{i+j,k+d})`` of an isotropic power-law surface.
 
@@ -195,7 +195,7 @@ def log_covariances(seg_n: int, window: str, gridding: str, alpha: float) -> np.
     return out
 
 
-@lru_cache(maxsize=256)
+@table_cache(256)
 def _lag_correlations(
     seg_n: int, window: str, gridding: str, alpha: float, coef: bytes
 ) -> np.ndarray:
@@ -292,7 +292,7 @@ def standard_errors(
     return se_b, se_w
 
 
-@lru_cache(maxsize=64)
+@table_cache(64)
 def _effect_tables(
     seg_n: int, window: str, gridding: str, alpha: float, m: int
 ) -> tuple[np.ndarray, np.ndarray]:
