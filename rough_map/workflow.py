@@ -283,8 +283,8 @@ def _frame_pass(
     frames: FrameStream | None = None,
 ) -> None:
     """Every frame through the mapper: features (unless given) and heights, classes later;
-    ``frames``: the pass, already started (checked to be this one)."""
-    jobs = frame_jobs(traverse)
+    ``frames``: the pass, already started (checked to be this one; its jobs are used)."""
+    jobs = frames.jobs if frames is not None else frame_jobs(traverse)
     settings = traverse_pass(
         traverse,
         mapper.extraction,
@@ -296,7 +296,7 @@ def _frame_pass(
             f"{traverse.name}: the features have {len(features)} rows, the traverse "
             f"{len(jobs)} frames"
         )
-    if frames is not None and frames.settings != settings:
+    if frames is not None and (frames.settings != settings or len(jobs) != len(traverse)):
         raise InputError(f"{traverse.name}: the frame pass given was set up for another traverse")
     outputs = (
         frames

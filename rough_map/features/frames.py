@@ -461,6 +461,7 @@ class FrameStream:
         desc: str = "frames",
     ) -> None:
         self.settings = settings
+        self.jobs = [job for c in chunks for job in c]  # the frames, in order
         self._chunks = chunks
         self._progress = (sum(len(c) for c in chunks), progress, desc)
         self._futures: dict[int, Any] = {}
