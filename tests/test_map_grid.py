@@ -109,6 +109,32 @@ def test_layers_have_units_and_check_shapes():
     assert g.layers == ()
 
 
+def test_layers_made_together_are_as_if_made_one_by_one():
+    """``add_layers_as`` (the tiles' blank layers, in one block) against ``add_layer_as``."""
+    infos = [
+        ("count", LayerInfo("1", "patches", 0.0, "internal")),
+        ("R", LayerInfo("m^3/rad", "overall energy")),
+        ("class", LayerInfo("1", "", math.nan, "class", ("a", "b"))),
+    ]
+    geometry = GridGeometry(0.1, (0, 0), (3, 4))
+    one, block = GridMap(geometry), GridMap(geometry)
+    for name, info in infos:
+        one.add_layer_as(name, info)
+    block.add_layers_as(infos)
+    assert block.layers == one.layers
+    for name, _ in infos:
+        assert block.info(name) == one.info(name)
+        assert np.array_equal(block[name], one[name], equal_nan=True)
+    block["count"][1, 2] += 5.0  # each layer is its own array
+    assert block["count"].sum() == 5.0 and np.isnan(block["R"]).all()
+    with pytest.raises(InputError, match="layer 'R' exists already"):
+        block.add_layers_as([("R", infos[1][1])])
+    with pytest.raises(InputError, match="layer 'x' exists already"):
+        GridMap(GridGeometry(0.1, (0, 0), (3, 4))).add_layers_as([("x", infos[0][1])] * 2)
+    with pytest.raises(InputError, match=r"\(name, LayerInfo\) pairs, got ''"):
+        block.add_layers_as([("", infos[0][1])])
+
+
 def test_height_field_view_samples_cell_centres():
     g = ramp_map()
     hf = g.to_height_field("xy")
@@ -215,3 +241,26 @@ def test_from_grid_map_rejects_wrong_shapes():
     gm.layers["xy"] = gm.layers["xy"].T
     with pytest.raises(InputError, match="grid_map size"):
         from_grid_map(gm)
+
+
+def test_add_at_adds_into_the_layers_through_copies_and_growth():
+    """``add_at`` (a patch's sums into a tile) on block layers, layers of their own, a
+    pickled copy and a grown map: the same as adding layer by layer."""
+    import pickle
+
+    infos = [(n, LayerInfo("1", "", 0.0, "internal")) for n in ("count", "sum_w", "n")]
+    grid = GridMap(GridGeometry(0.1, (0, 0), (3, 4)))
+    grid.add_layers_as(infos)
+    grid.add_layer("extra", units="1", fill=0.0)
+    cells = np.array([0, 5, 11])
+    sums = [("count", 1.0), ("sum_w", -2.5), ("extra", 3.0), ("absent", 9.0)]
+    for g in (grid, pickle.loads(pickle.dumps(grid)), grid.copy()):
+        g.add_at(cells, sums)
+        for name, value in sums[:3]:
+            flat = g[name].reshape(-1)
+            assert np.all(flat[cells] == value) and np.count_nonzero(flat) == 3, name
+        assert not g["n"].any()
+    grid.drop_layer("sum_w")
+    grid.ensure_covers((0.0, 0.0, 1.0, 1.0), margin=0.0)
+    grid.add_at(np.array([0]), [("count", 1.0), ("sum_w", 1.0)])
+    assert grid["count"].sum() == 4.0 and "sum_w" not in grid

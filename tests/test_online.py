@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import importlib
 import json
 import math
@@ -14,7 +15,7 @@ import numpy as np
 import pytest
 
 from rough_map.classify import load_terrain_model
-from rough_map.cli._common import unused_optional_imports
+from rough_map.cli._common import start_up, unused_optional_imports
 from rough_map.errors import FileFormatError, InputError, ModelError
 from rough_map.features import FramePass, frame_jobs, iter_frames, traverse_features
 from rough_map.features.frames import FrameJob, height_sample, process_frame, process_frames
@@ -309,3 +310,19 @@ def test_map_runs_without_pandas(small_traverse: Path, tmp_path: Path) -> None:
         with pytest.raises(ImportError):
             importlib.import_module("tabnanny")
     assert importlib.import_module("tabnanny").__name__ == "tabnanny"
+
+
+def test_start_up_runs_without_the_collector_and_freezes_what_it_made() -> None:
+    """`map`'s start-up: no collection walks the imports, and later ones skip them."""
+    enabled, before = gc.isenabled(), gc.get_freeze_count()
+    try:
+        with start_up():
+            assert not gc.isenabled()
+            made = [[] for _ in range(1000)]
+        assert gc.isenabled() == enabled
+        assert gc.get_freeze_count() >= before + len(made)
+        with pytest.raises(KeyError), start_up():
+            raise KeyError("x")
+        assert gc.isenabled() == enabled
+    finally:
+        gc.unfreeze()

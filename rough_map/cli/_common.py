@@ -15,6 +15,7 @@ Conventions every command keeps (``rough_map.cli.main`` builds the sub-parsers w
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import math
 import re
@@ -175,6 +176,27 @@ def unused_optional_imports(*names: str) -> Iterator[None]:
         for name in blocked:
             if name in sys.modules and sys.modules[name] is None:
                 del sys.modules[name]
+
+
+@contextmanager
+def start_up() -> Iterator[None]:
+    """Run a command's start-up (its imports, the traverse's frame list) without the
+    cyclic garbage collector, then freeze what it built (:func:`gc.freeze`).
+
+    Imports leave little cyclic garbage, but each automatic full collection walks every
+    object already made: the ~200,000 of scikit-learn, scipy and matplotlib's modules. In
+    `rough-map map` on an hour of driving the main process spent 0.7-0.8 s collecting,
+    0.5-0.6 s of it in six full collections, four of them during the imports; with this,
+    0.3 s. Frozen objects are never walked again; reference counting still frees them.
+    """
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        gc.freeze()
+        if enabled:
+            gc.enable()
 
 
 def _number(text: str, kind: type) -> float | int:

@@ -14,6 +14,7 @@ from rough_map.cli._common import (
     emit_json,
     near_far_settings,
     open_traverses,
+    start_up,
     status,
     table,
     unused_optional_imports,
@@ -80,21 +81,28 @@ def run(args: argparse.Namespace) -> int:
     from rough_map.features.frames import start_workers
     from rough_map.features.traverse import start_frame_pass
 
-    start_workers(args.jobs)  # they import rough_map while this process reads the traverse
     out: Path = args.out
     near_far = NEAR_FAR[args.near_far]
-    (traverse,) = open_traverses(args, args.traverse)
     model = args.model or default_model()
-    # The workers start on the frames (the model's extraction is on its card) while this
-    # process imports scikit-learn and loads the model; analyse checks that they agree.
-    frames = start_frame_pass(
-        traverse, model, resolution=args.resolution, n_jobs=args.jobs, progress=args.progress
-    )
+    frames = None
     try:
-        with unused_optional_imports("pandas"):
-            from rough_map.workflow import analyse, summary, write_outputs
-        if frames is not None and not args.no_png:
-            import matplotlib.backends.backend_agg  # noqa: F401  # for the PNGs, meanwhile
+        with start_up():
+            start_workers(args.jobs)  # they import rough_map while this reads the traverse
+            (traverse,) = open_traverses(args, args.traverse)
+            # The workers start on the frames (the model's extraction is on its card) while
+            # this process imports scikit-learn and loads the model; analyse checks that
+            # they agree.
+            frames = start_frame_pass(
+                traverse,
+                model,
+                resolution=args.resolution,
+                n_jobs=args.jobs,
+                progress=args.progress,
+            )
+            with unused_optional_imports("pandas"):
+                from rough_map.workflow import analyse, summary, write_outputs
+            if frames is not None and not args.no_png:
+                import matplotlib.backends.backend_agg  # noqa: F401  # for the PNGs
     except BaseException:
         if frames is not None:
             frames.close()

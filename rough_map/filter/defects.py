@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from rough_map import errors
+from rough_map._numeric import median
 
 __all__ = ["IsolatedSpikes", "isolated_spikes"]
 
@@ -81,9 +82,10 @@ def isolated_spikes(
     lo = np.searchsorted(s, s - window, side="left")
     hi = np.searchsorted(s, s + window, side="right")
     above = np.zeros(n, dtype=bool)
+    ln_ratio = np.log(ratio)
     for k in np.flatnonzero(known):
         local = ln_v[lo[k] : hi[k]]
-        above[k] = ln_v[k] - np.median(local[np.isfinite(local)]) > np.log(ratio)
+        above[k] = ln_v[k] - median(local[np.isfinite(local)]) > ln_ratio
     # runs of frames above, bridging frames without a value
     i = 0
     while i < n:

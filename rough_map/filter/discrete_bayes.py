@@ -147,13 +147,19 @@ def forward(
         return out
     belief = update(init, ll[0])
     out[0] = belief
-    for t in range(1, n):
-        # predict() with the transition already exponentiated: log(exp(b - max) @ T) + max
-        m = belief.max()
-        with np.errstate(divide="ignore"):
+    with np.errstate(divide="ignore"):
+        for t in range(1, n):
+            # predict() with the transition already exponentiated: log(exp(b - max) @ T) +
+            # max; then update() with its normalisation written out (a frame's loop, 7,200
+            # times for an hour of driving: half the time of the calls)
+            m = belief.max()
             prior = np.log(np.exp(belief - m) @ trans[t - 1]) + m
-        belief = update(prior, ll[t])
-        out[t] = belief
+            post = prior + ll[t]
+            top = post.max()
+            if not np.isfinite(top):
+                update(prior, ll[t])  # raises, naming what is wrong
+            belief = post - (np.log(np.exp(post - top).sum()) + top)
+            out[t] = belief
     return out
 
 
@@ -179,13 +185,14 @@ def smooth(
         return log_alpha
     trans = np.exp(_step_transitions(log_transitions, n, k))
     log_beta = np.zeros((n, k))
-    for t in range(n - 2, -1, -1):
-        # beta_t(i) = sum_j T[i, j] l_{t+1}(j) beta_{t+1}(j), renormalised to stay in range
-        v = ll[t + 1] + log_beta[t + 1]
-        m = v.max()
-        with np.errstate(divide="ignore"):
-            b = np.log(trans[t] @ np.exp(v - m)) + m
-        log_beta[t] = b - _logsumexp(b)
+    with np.errstate(divide="ignore"):
+        for t in range(n - 2, -1, -1):
+            # beta_t(i) = sum_j T[i, j] l_{t+1}(j) beta_{t+1}(j), shifted to stay in range
+            # (any constant per frame: the posterior is normalised at the end)
+            v = ll[t + 1] + log_beta[t + 1]
+            m = v.max()
+            b = np.log(trans[t] @ np.exp(v - m))
+            log_beta[t] = b - b.max()
     post = log_alpha + log_beta
     return post - _logsumexp(post, axis=1)[:, None]
 

@@ -421,7 +421,7 @@ class RoughnessSmoother(BaseEstimator):
             jump,
         )
         # filterpy's convention, as the filter's: Qs[k] is the noise of the step into frame k
-        xs, Ps, _, _ = kf.rts_smoother(xs, Ps, Qs=Qs)
+        xs, Ps, _, _ = kf.rts_smoother(xs, Ps, Qs=Qs, inv=_inv2)
         sd = np.sqrt(np.maximum(np.diagonal(Ps, axis1=1, axis2=2), 0.0))
         if jump.any():
             log.info("roughness smoother: changes of ground at %s m", np.round(dist[jump], 2))
@@ -482,9 +482,11 @@ def _forward(
         if use[i] and steps[i] > 0:
             R_i = back @ (level_var * np.maximum(1.0, length / steps[i])) @ back.T
             if started:
-                keep = [k for k, t in enumerate(onsets) if dist[i] - dist[t] <= window]
-                onsets = [onsets[k] for k in keep]
-                G, d, C = G[keep], d[keep], C[keep]
+                old = 0  # onsets are in order: those out of the window come first
+                while old < len(onsets) and dist[i] - dist[onsets[old]] > window:
+                    old += 1
+                if old:
+                    onsets, G, d, C = onsets[old:], G[old:], d[old:], C[old:]
                 if not jump[i]:
                     onsets.append(i)
                     G = np.concatenate([G, eye[None]])
@@ -495,7 +497,7 @@ def _forward(
                     GtSi = np.transpose(G, (0, 2, 1)) @ Si
                     d = d + GtSi @ (z[i] - kf.x)
                     C = C + GtSi @ G
-                    stat = np.einsum("ki,ki->k", d, np.linalg.solve(C, d[..., None])[..., 0])
+                    stat = _quad2(C, d)
                     best = int(np.argmax(stat))
                     if stat[best] > threshold:
                         # a change of ground at the likeliest onset: start again from there
@@ -517,6 +519,21 @@ def _forward(
 
 
 # ------------------------------------------------------------------------- helpers
+
+
+def _quad2(C: NDArray[np.float64], d: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``d_k' C_k^-1 d_k`` for a stack of 2 x 2 matrices ``C`` (k, 2, 2) and vectors ``d``
+    (k, 2), written out (the jump test's statistic, per frame); a singular ``C_k`` gives
+    -inf, no change of ground."""
+    a, b, c, e = C[:, 0, 0], C[:, 0, 1], C[:, 1, 0], C[:, 1, 1]
+    d0, d1 = d[:, 0], d[:, 1]
+    det = a * e - b * c
+    num = d0 * (e * d0 - b * d1) + d1 * (a * d1 - c * d0)
+    if det.all():  # (np.errstate costs more than the arithmetic here)
+        return num / det
+    with np.errstate(divide="ignore", invalid="ignore"):
+        stat = num / det
+    return np.where(det != 0, stat, -np.inf)
 
 
 def _inv2(m: NDArray[np.float64]) -> NDArray[np.float64]:

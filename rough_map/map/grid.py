@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -115,6 +115,14 @@ class GridMap:
         self._data: dict[str, NDArray[np.float64]] = {}
         self._info: dict[str, LayerInfo] = {}
         self.attrs: dict[str, Any] = dict(attrs or {})
+        # layers made together by add_layers_as: their block, and each one's index in it
+        self._block: NDArray[np.float64] | None = None
+        self._slots: dict[str, int] = {}
+
+    def __getstate__(self) -> dict[str, Any]:
+        # The block is storage, not state: a copy or a pickle holds each layer as an array
+        # of its own (they would no longer be views of the block it held).
+        return {**self.__dict__, "_block": None, "_slots": {}}
 
     def __repr__(self) -> str:
         g = self._geometry
@@ -206,6 +214,43 @@ class GridMap:
             data=data,
         )
 
+    def add_layers_as(self, layers: Sequence[tuple[str, LayerInfo]]) -> None:
+        """Create the layers ``(name, info)``, each filled with its fill, in one block of
+        memory: what :meth:`add_layer_as` does one by one, for the few dozen accumulators
+        of every map tile (a tile of an hour's map is made a thousand times)."""
+        seen = set(self._data)
+        for name, info in layers:
+            if not name or not isinstance(name, str) or not isinstance(info, LayerInfo):
+                raise InputError(f"layers must be (name, LayerInfo) pairs, got {name!r}")
+            if name in seen:
+                raise InputError(f"layer {name!r} exists already")
+            seen.add(name)
+        block = np.empty((len(layers), *self.shape))
+        block[...] = np.array([info.fill for _, info in layers])[:, None, None]
+        for (name, info), arr in zip(layers, block, strict=True):
+            self._data[name] = arr
+            self._info[name] = info
+        if self._block is None:
+            self._block = block
+            self._slots = {name: i for i, (name, _) in enumerate(layers)}
+
+    def add_at(self, cells: NDArray[np.intp], sums: Sequence[tuple[str, float]]) -> None:
+        """Add ``value`` to layer ``name`` in ``cells`` (distinct indices into the flat
+        layer), for each ``(name, value)`` of ``sums``; names the map lacks are skipped.
+        What fusion does for every patch: the layers made by :meth:`add_layers_as` take
+        their values in one step."""
+        rows, values = [], []
+        for name, value in sums:
+            slot = self._slots.get(name)
+            if slot is not None:
+                rows.append(slot)
+                values.append(value)
+            elif name in self._data:
+                self._data[name].reshape(-1)[cells] += value
+        if rows and self._block is not None:
+            flat = self._block.reshape(len(self._block), -1)
+            flat[np.array(rows)[:, None], cells] += np.array(values)[:, None]
+
     def __getitem__(self, name: str) -> NDArray[np.float64]:
         """The array of layer ``name``, shape :attr:`shape`, in the layer's units
         (:meth:`units`); a view that writes go through to."""
@@ -244,6 +289,7 @@ class GridMap:
         """Remove layer ``name``."""
         self[name]
         del self._data[name], self._info[name]
+        self._slots.pop(name, None)
 
     # -- growth -------------------------------------------------------------------------
 
@@ -273,6 +319,7 @@ class GridMap:
         if geometry is self._geometry:
             return 0, 0
         rows, cols = self.shape
+        self._block, self._slots = None, {}  # every layer gets an array of its own
         for name, old in self._data.items():
             new = np.full(geometry.shape, self._info[name].fill, dtype=np.float64)
             new[di : di + rows, dj : dj + cols] = old

@@ -173,8 +173,7 @@ class TiledMap:
             self._template = [(n, grid.info(n)) for n in grid.layers]
             self._attrs = dict(grid.attrs)
         grid = GridMap(geometry, attrs=self._attrs)
-        for name, i in self._template:
-            grid.add_layer_as(name, i)
+        grid.add_layers_as(self._template)
         return grid
 
     def _init_layers(self, grid: GridMap) -> None:
@@ -288,9 +287,7 @@ class TiledMap:
                     continue
                 cells = (ii + (rs - tr * n)) * n + (jj + (cs - tc * n))  # in the flat tile
                 tile = self.tile((tr, tc))
-                for name, value in sums:
-                    if name in tile:
-                        tile[name].reshape(-1)[cells] += value
+                tile.add_at(cells, sums)
                 if math.isfinite(t) and "last_seen" in tile:
                     seen = tile["last_seen"].reshape(-1)
                     seen[cells] = np.fmax(seen[cells], t)

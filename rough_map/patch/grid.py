@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rough_map._numeric import median
 from rough_map.errors import InputError, PatchError
 from rough_map.geometry import check_angle, levelling_rotation, rotation_matrix, transform_columns
 from rough_map.patch._params import check_bool, check_int, check_real
@@ -232,7 +233,7 @@ def _grid(pts, spec, rot, offset, min_points, estimate_noise) -> GriddedPatch:
         if not np.isfinite(pts).all(axis=1).any():
             raise InputError(f"points: all {len(pts)} points have NaN or infinite values")
         sample = pts[np.isfinite(pts).all(axis=1), 2]
-    zref = _median(sample)
+    zref = median(sample)
     cnt = np.zeros(width * width, dtype=np.intp)
     sz = np.zeros(width * width)
     szz = np.zeros(width * width)
@@ -302,16 +303,6 @@ def _grid(pts, spec, rot, offset, min_points, estimate_noise) -> GriddedPatch:
     return GriddedPatch(heights, counts, spec, n_in, point_noise, noise_psd)
 
 
-def _median(values: np.ndarray) -> float:
-    """The median of a non-empty 1-D array (np.median without its overhead)."""
-    n = values.size
-    k = n // 2
-    if n % 2:
-        return float(np.partition(values, k)[k])
-    part = np.partition(values, (k - 1, k))
-    return float((part[k - 1] + part[k]) / 2)
-
-
 def _gradient(z: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
     """The gradient of a grid along x (columns) and y (rows): central differences inside,
     one-sided at the edges (np.gradient's arithmetic, without its overhead)."""
@@ -347,7 +338,7 @@ def _noise(
     # Pool over cells, leaving out only gross outliers. Trimming a fixed share of the most
     # scattered cells would bias the pool low by the tail of its chi-square law: 12 % at
     # 4 points per cell, which flattens w and lowers R on sparse clouds.
-    med = _median(var_c)
+    med = median(var_c)
     keep = var_c <= 50.0 * med if med > 0 else np.ones(var_c.shape, dtype=bool)
     var = float(np.sum(var_c[keep] * dof[keep]) / np.sum(dof[keep]))
     var = max(var, 0.0)
