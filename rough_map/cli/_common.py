@@ -166,6 +166,9 @@ def unused_optional_imports(*names: str) -> Iterator[None]:
     rough_map hands it numpy arrays only: in an environment that has pandas, that is 63 MB
     and 0.2 s of a `rough-map map` process, a seventh of its memory budget. scikit-learn
     works without pandas (it then only refuses DataFrames, which rough_map never gives it).
+    Likewise dask, which its array-library checks import during a prediction. Only the
+    imports are blocked: the block must not be held over code that looks a package up in
+    ``sys.modules`` (scikit-learn's predictions do, for pandas).
     """
     blocked = [n for n in names if n not in sys.modules]
     for name in blocked:
