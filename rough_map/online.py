@@ -32,8 +32,8 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from threadpoolctl import ThreadpoolController
 
+from rough_map._blas import one_blas_thread
 from rough_map.classify import (
     TerrainModel,
     emission_log_likelihood,
@@ -178,7 +178,6 @@ class OnlineMapper:
         self._track: list[tuple[float, float]] = []
         self._log_belief: NDArray[np.float64] | None = None
         self._last_xy: tuple[float, float] | None = None
-        self._blas = ThreadpoolController()  # found once; limited around each frame
 
     # -- one frame ---------------------------------------------------------------------
 
@@ -214,7 +213,7 @@ class OnlineMapper:
         """
         job = self._job(pose, t, label, imu)
         # Small matrices per frame: BLAS threads would only get in each other's way.
-        with self._blas.limit(limits=1, user_api="blas"):
+        with one_blas_thread():
             points = self._points(cloud, left, right)
             out = process_points(points, job, self.settings, "no cloud or stereo pair given")
             return self.add(out, job.pose, classes=True)

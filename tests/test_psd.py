@@ -292,3 +292,28 @@ def test_each_patch_takes_its_own_floor_or_one_for_all() -> None:
     assert isinstance(out[1], PatchError) and "noise floor 1 m^3/rad" in str(out[1])
     assert [type(r).__name__ for r in out] == ["PatchRoughness", "PatchError", "PatchRoughness"]
     assert out[0].noise_psd == 1e-9 and out[0].noise_subtracted
+
+
+def test_fill_gaps_in_place_fills_the_array_given_and_checks_heights_as_before():
+    """``copy=False`` (the estimator's own stacks) gives the copy's result in the array."""
+    from rough_map.psd import fill_gaps
+    from rough_map.psd._gaps import check_heights
+
+    rng = np.random.default_rng(2)
+    h = rng.normal(0.0, 1e-3, (6, 64))
+    h[1, 10:13] = np.nan
+    h[4, 5:40] = np.nan  # too long: dropped, left as it was
+    copied, keep = fill_gaps(h, 0.008)
+    assert np.isnan(h).sum() == 38  # the default copies
+    own = h.copy()
+    filled, keep2 = fill_gaps(own, 0.008, copy=False)
+    assert filled is own and np.array_equal(filled, copied, equal_nan=True)
+    assert np.array_equal(keep, keep2) and keep.tolist() == [1, 1, 1, 1, 0, 1]
+    with pytest.raises(InputError, match="copy must be"):
+        fill_gaps(h, 0.008, copy="no")
+    for bad, match in ((np.inf, "infinite"), (-np.inf, "infinite"), (2e6, "wrong units")):
+        g = h.copy()
+        g[0, 0] = bad
+        with pytest.raises(InputError, match=match):
+            check_heights(g)
+    assert check_heights(np.full((2, 8), np.nan)).shape == (2, 8)  # all missing passes

@@ -26,6 +26,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from rough_map._blas import one_blas_thread
 from rough_map.config import StereoCalibration
 from rough_map.errors import FileFormatError, InputError
 from rough_map.features.extract import GriddedFrame, grid_frame, measure_frames
@@ -349,14 +350,12 @@ def process_frames(jobs: Sequence[FrameJob], settings: FramePass) -> list[FrameO
     """:func:`process_frame` of each job, single-threaded (the unit of work of a worker):
     each frame's points are read, gridded and dropped, then all the patches are measured
     in one vectorised pass (the same numbers as one frame at a time)."""
-    from threadpoolctl import threadpool_limits
-
     stereo = settings.source != "cloud" and any(j.left is not None for j in jobs)
     if stereo:
         import cv2
 
         cv2.setNumThreads(1)
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         gridded = []
         for job in jobs:
             points, reason = read_points(job, settings)

@@ -14,7 +14,7 @@ from collections.abc import Callable
 from functools import lru_cache, wraps
 from typing import Any, TypeVar
 
-from threadpoolctl import threadpool_limits
+from rough_map._blas import one_blas_thread
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -25,7 +25,7 @@ def table_cache(maxsize: int) -> Callable[[F], F]:
     def decorate(fn: F) -> F:
         @wraps(fn)
         def one_thread(*args: Any, **kwargs: Any) -> Any:
-            with threadpool_limits(limits=1, user_api="blas"):
+            with one_blas_thread():
                 return fn(*args, **kwargs)
 
         return lru_cache(maxsize=maxsize)(one_thread)  # type: ignore[return-value]

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from rough_map.errors import InputError
-from rough_map.patch._params import MAX_CELLS, check_real
+from rough_map.patch._params import MAX_CELLS, check_bool, check_real
 
 
 def check_spacing(spacing: Any) -> float:
@@ -43,9 +43,13 @@ def check_heights(heights: Any, min_samples: int = 8) -> np.ndarray:
         )
     if h.size > MAX_CELLS:
         raise InputError(f"heights has {h.size} cells (shape {h.shape}); at most {MAX_CELLS}")
-    if np.isinf(h).any():
+    # two passes (fmax and fmin skip NaN; all NaN gives NaN), where isinf, isnan, abs and
+    # nanmax took four
+    flat = h.reshape(-1)
+    hi, lo = float(np.fmax.reduce(flat)), float(np.fmin.reduce(flat))
+    if math.isinf(hi) or math.isinf(lo):
         raise InputError("heights contain infinite values; use NaN for missing cells")
-    top = float(np.nanmax(np.abs(h))) if not np.isnan(h).all() else 0.0
+    top = max(hi, -lo) if not math.isnan(hi) else 0.0
     if top > MAX_HEIGHT:
         raise InputError(
             f"heights reach {top:.3g} m, beyond {MAX_HEIGHT:.0e} m: wrong units? (elevations in m)"
@@ -75,6 +79,7 @@ def fill_gaps(
     *,
     max_gap: float = 0.05,
     max_gap_fraction: float = 0.2,
+    copy: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Apply the gap policy to the rows of a height grid.
 
@@ -88,6 +93,9 @@ def fill_gaps(
         Longest gap in m that is filled by interpolation.
     max_gap_fraction : float
         Largest fraction of missing cells a kept profile may have.
+    copy : bool
+        Fill a copy (the default); False fills ``heights`` itself when it is a float64
+        array, which the caller then gives up.
 
     Returns
     -------
@@ -106,6 +114,7 @@ def fill_gaps(
     spacing = check_spacing(spacing)
     check_real("max_gap", max_gap, "m", low=0.0, high=1e6)
     check_real("max_gap_fraction", max_gap_fraction, "", low=0.0, high=1.0)
+    check_bool("copy", copy)
     missing = np.isnan(h)
     if not missing.any():
         return h, np.ones(h.shape[0], dtype=bool)
@@ -126,7 +135,7 @@ def fill_gaps(
     max_cells = int(math.floor(max_gap / spacing + 1e-9))
     keep = (longest <= max_cells) & (n_missing / n <= max_gap_fraction)
     keep &= n - n_missing >= 2
-    filled = h.copy()
+    filled = h.copy() if copy else h
     fill = keep[row]
     if not fill.any():
         return filled, keep

@@ -365,8 +365,9 @@ def _split(
 def _with_gaps(
     arr: np.ndarray, spacing: float, opt: Options, floors: np.ndarray | None
 ) -> list[Outcome]:
-    """Patches with missing cells: the gap policy, patch by patch; then the patches that
-    keep the same number of profiles are estimated together."""
+    """Patches with missing cells: the gap policy, patch by patch (filling ``arr``, a
+    stack of the caller's that it gives up, in place); then the patches that keep the same
+    number of profiles are estimated together."""
     n_patch, m, n = arr.shape
     out: list[Outcome | None] = [None] * n_patch
     kept: dict[int, np.ndarray] = {}
@@ -375,7 +376,11 @@ def _with_gaps(
         # the gap policy works profile by profile: on all the chunk's profiles at once
         rows = check_heights(arr[start : start + chunk].reshape(-1, n))  # NaN passes, inf not
         filled, keep = fill_gaps(
-            rows, spacing, max_gap=opt.max_gap, max_gap_fraction=opt.max_gap_fraction
+            rows,
+            spacing,
+            max_gap=opt.max_gap,
+            max_gap_fraction=opt.max_gap_fraction,
+            copy=False,
         )
         grids, uses = filled.reshape(-1, m, n), keep.reshape(-1, m)
         for j, (grid, used) in enumerate(zip(grids, uses, strict=True)):
