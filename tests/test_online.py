@@ -328,3 +328,19 @@ def test_start_up_runs_without_the_collector_and_freezes_what_it_made() -> None:
         assert gc.isenabled() == enabled
     finally:
         gc.unfreeze()
+
+
+def test_one_blas_thread_limits_blas_inside_the_block_only() -> None:
+    from threadpoolctl import threadpool_info
+
+    from rough_map._blas import one_blas_thread
+
+    def blas() -> list[int]:
+        return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+
+    before = blas()
+    assert before  # numpy's OpenBLAS at least
+    for _ in range(2):  # the second time with the libraries found the first
+        with one_blas_thread():
+            assert set(blas()) == {1}
+        assert blas() == before
