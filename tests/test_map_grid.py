@@ -260,6 +260,8 @@ def test_add_at_adds_into_the_layers_through_copies_and_growth():
             flat = g[name].reshape(-1)
             assert np.all(flat[cells] == value) and np.count_nonzero(flat) == 3, name
         assert not g["n"].any()
+    grid.add_at(cells, [("n", 1.0), ("n", 2.0)])  # a name twice: both values
+    assert np.all(grid["n"].reshape(-1)[cells] == 3.0)
     grid.drop_layer("sum_w")
     grid.ensure_covers((0.0, 0.0, 1.0, 1.0), margin=0.0)
     grid.add_at(np.array([0]), [("count", 1.0), ("sum_w", 1.0)])

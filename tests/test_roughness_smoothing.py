@@ -565,14 +565,14 @@ def test_the_map_refuses_an_unknown_roughness(tmp_path: Path) -> None:
 
 def test_the_jump_statistic_is_the_quadratic_form_of_the_bank() -> None:
     """``d' C^-1 d`` written out for the GLR bank, against LAPACK; singular: no jump."""
-    from rough_map.filter.roughness import _quad2
+    from rough_map.filter._small import quad2
 
     rng = np.random.default_rng(4)
     a = rng.normal(size=(9, 2, 2))
     C = a @ np.transpose(a, (0, 2, 1)) + 0.1 * np.eye(2)
     d = rng.normal(size=(9, 2))
     expected = np.einsum("ki,ki->k", d, np.linalg.solve(C, d[..., None])[..., 0])
-    np.testing.assert_allclose(_quad2(C, d), expected, rtol=1e-12)
+    np.testing.assert_allclose(quad2(C, d), expected, rtol=1e-12)
     C[3] = [[1.0, 2.0], [2.0, 4.0]]
-    got = _quad2(C, d)
+    got = quad2(C, d)
     assert got[3] == -np.inf and np.isfinite(np.delete(got, 3)).all()

@@ -64,6 +64,7 @@ from rough_map.classify.evidence import frame_steps
 from rough_map.classify.validation import check_fitted, is_number
 from rough_map.config import load_model
 from rough_map.features.table import SMOOTH_COLUMNS, FeatureTable
+from rough_map.filter._small import inv2, quad2
 from rough_map.filter.defects import IsolatedSpikes
 from rough_map.filter.roughness_config import CONFIG_FILE, RoughnessSmoothingConfig, spread
 from rough_map.filter.roughness_fit import labelled_segments, learn_noise_model, level_transform
@@ -421,7 +422,7 @@ class RoughnessSmoother(BaseEstimator):
             jump,
         )
         # filterpy's convention, as the filter's: Qs[k] is the noise of the step into frame k
-        xs, Ps, _, _ = kf.rts_smoother(xs, Ps, Qs=Qs, inv=_inv2)
+        xs, Ps, _, _ = kf.rts_smoother(xs, Ps, Qs=Qs, inv=inv2)
         sd = np.sqrt(np.maximum(np.diagonal(Ps, axis1=1, axis2=2), 0.0))
         if jump.any():
             log.info("roughness smoother: changes of ground at %s m", np.round(dist[jump], 2))
@@ -457,7 +458,7 @@ def _forward(
     back = np.linalg.inv(to_level)
     level_var = np.diag(np.diag(to_level @ cov @ to_level.T))
     kf = KalmanFilter(dim_x=2, dim_z=2)
-    kf.inv = _inv2  # its gain's inverse, per frame
+    kf.inv = inv2  # its gain's inverse, per frame
     kf.F, kf.H = eye.copy(), eye.copy()
     kf.x = np.zeros(2)
     kf.P = _DIFFUSE * eye
@@ -482,9 +483,7 @@ def _forward(
         if use[i] and steps[i] > 0:
             R_i = back @ (level_var * np.maximum(1.0, length / steps[i])) @ back.T
             if started:
-                old = 0  # onsets are in order: those out of the window come first
-                while old < len(onsets) and dist[i] - dist[onsets[old]] > window:
-                    old += 1
+                old = _out_of_window(onsets, dist, i, window)
                 if old:
                     onsets, G, d, C = onsets[old:], G[old:], d[old:], C[old:]
                 if not jump[i]:
@@ -493,11 +492,11 @@ def _forward(
                     d = np.concatenate([d, np.zeros((1, 2))])
                     C = np.concatenate([C, np.zeros((1, 2, 2))])
                 if onsets:
-                    Si = _inv2(kf.P + R_i)
+                    Si = inv2(kf.P + R_i)
                     GtSi = np.transpose(G, (0, 2, 1)) @ Si
                     d = d + GtSi @ (z[i] - kf.x)
                     C = C + GtSi @ G
-                    stat = _quad2(C, d)
+                    stat = quad2(C, d)
                     best = int(np.argmax(stat))
                     if stat[best] > threshold:
                         # a change of ground at the likeliest onset: start again from there
@@ -521,29 +520,12 @@ def _forward(
 # ------------------------------------------------------------------------- helpers
 
 
-def _quad2(C: NDArray[np.float64], d: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``d_k' C_k^-1 d_k`` for a stack of 2 x 2 matrices ``C`` (k, 2, 2) and vectors ``d``
-    (k, 2), written out (the jump test's statistic, per frame); a singular ``C_k`` gives
-    -inf, no change of ground."""
-    a, b, c, e = C[:, 0, 0], C[:, 0, 1], C[:, 1, 0], C[:, 1, 1]
-    d0, d1 = d[:, 0], d[:, 1]
-    det = a * e - b * c
-    num = d0 * (e * d0 - b * d1) + d1 * (a * d1 - c * d0)
-    if det.all():  # (np.errstate costs more than the arithmetic here)
-        return num / det
-    with np.errstate(divide="ignore", invalid="ignore"):
-        stat = num / det
-    return np.where(det != 0, stat, -np.inf)
-
-
-def _inv2(m: NDArray[np.float64]) -> NDArray[np.float64]:
-    """The inverse of a 2 x 2 matrix, written out: the filter inverts two a frame, and
-    LAPACK's call costs several times the arithmetic at this size."""
-    (a, b), (c, d) = m.tolist()
-    det = a * d - b * c
-    if det == 0.0 or not math.isfinite(det):
-        return np.asarray(np.linalg.inv(m), dtype=float)  # a singular one raises, as before
-    return np.array([[d / det, -b / det], [-c / det, a / det]])
+def _out_of_window(onsets: list[int], dist: NDArray[np.float64], i: int, window: float) -> int:
+    """How many of the bank's onsets (in order) lie more than ``window`` m behind frame i."""
+    old = 0
+    while old < len(onsets) and dist[i] - dist[onsets[old]] > window:
+        old += 1
+    return old
 
 
 def _array(values: ArrayLike, name: str, n: int | None = None) -> NDArray[np.float64]:

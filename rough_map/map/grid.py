@@ -238,7 +238,11 @@ class GridMap:
         """Add ``value`` to layer ``name`` in ``cells`` (distinct indices into the flat
         layer), for each ``(name, value)`` of ``sums``; names the map lacks are skipped.
         What fusion does for every patch: the layers made by :meth:`add_layers_as` take
-        their values in one step."""
+        their values in one step (a name given twice gets both values)."""
+        if len({name for name, _ in sums}) < len(sums):
+            for name, value in sums:
+                self.add_at(cells, [(name, value)])
+            return
         rows, values = [], []
         for name, value in sums:
             slot = self._slots.get(name)
