@@ -268,3 +268,35 @@ def test_tiles_refuse_bad_lengths():
         WorldTiles(segs, overlap=-1.0)
     with pytest.raises(InputError, match=r"tile_length .* got nan"):
         WorldTiles(segs, tile_length=math.nan)
+
+
+def test_the_truth_geotiff_of_a_tiled_world_holds_one_tile_at_a_time(tmp_path):
+    """`simulate` writes world_truth.tif from the tiled truth: four times the tiles, about
+    the same memory (holding them all took 1 GB for a 1 km course)."""
+    import rasterio
+
+    from rough_map.io.truth_raster import write_truth_geotiff
+
+    def peak(n_tiles: int) -> tuple[int, int]:
+        ny, cols = 200, 500
+        path = tmp_path / f"w{n_tiles}.npz"
+        with TiledWorldWriter(
+            path, (ny, n_tiles * cols), 0.01, (0.0, 0.0), CLASS_NAMES, tile_columns=cols
+        ) as w:
+            for k in range(n_tiles):
+                heights = np.zeros((ny, cols))
+                w.append(k * cols, heights, np.full((ny, cols), k % 5, dtype=np.int8))
+        world = open_world(path)
+        tracemalloc.start()
+        out = write_truth_geotiff(world, tmp_path / f"t{n_tiles}.tif", "EPSG:32632")
+        top = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        with rasterio.open(out) as ds:
+            band = ds.read(1)
+        assert band.shape == (ny, n_tiles * cols)
+        assert band[0, ::cols].tolist() == [k % 5 for k in range(n_tiles)]
+        return top, ny * cols
+
+    short, tile_bytes = peak(4)
+    long, _ = peak(16)
+    assert long < short + 3 * tile_bytes, (short, long)

@@ -30,7 +30,7 @@ import json
 import logging
 import re
 import xml.etree.ElementTree as ET
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -231,12 +231,15 @@ def write_truth_geotiff(
     ny, nx = world.shape
     s = world.spacing
     transform = Affine(s, 0.0, world.origin[0] - s / 2, 0.0, -s, world.origin[1] + (ny - 0.5) * s)
+    blocks: Iterator[tuple[int, np.ndarray]]
     if isinstance(world, TiledWorld):
-        blocks = [(int(world.tile_columns[k]), world.tile_classes(k)) for k in range(world.n_tiles)]
+        # one tile in memory at a time: a list of them all held 1 GB for a 1 km course
+        tiled = world
+        blocks = ((int(tiled.tile_columns[k]), tiled.tile_classes(k)) for k in range(tiled.n_tiles))
     else:
         assert world.classes is not None
         step = 4096  # columns at a time: small temporaries
-        blocks = [(c, world.classes[:, c : c + step]) for c in range(0, nx, step)]
+        blocks = ((c, world.classes[:, c : c + step]) for c in range(0, nx, step))
     path = Path(path)
     with (
         atomic_output(path) as tmp,
