@@ -156,10 +156,33 @@ def _carry_over(old: Path, new: Path, owned: Sequence[str]) -> None:
             _link_or_copy(entry.path, str(target))
 
 
+def _is_mount_point(folder: Path) -> bool:
+    """``folder`` is a mount point, bind mounts within one file system included (which
+    :func:`os.path.ismount` misses: same device as the parent; renaming one gives EBUSY)."""
+    if os.path.ismount(folder):
+        return True
+    real = os.path.realpath(folder)
+    try:
+        with open("/proc/self/mountinfo", encoding="utf-8", errors="surrogateescape") as fh:
+            for line in fh:
+                fields = line.split(" ", 5)
+                if len(fields) > 4 and _unescape_mount(fields[4]) == real:
+                    return True
+    except OSError:
+        pass
+    return False
+
+
+def _unescape_mount(text: str) -> str:
+    for code, char in (("\\040", " "), ("\\011", "\t"), ("\\012", "\n"), ("\\134", "\\")):
+        text = text.replace(code, char)
+    return text
+
+
 def _swappable(folder: Path) -> bool:
     if not folder.exists():
         return True
-    if os.path.ismount(folder):
+    if _is_mount_point(folder):
         return False
     real = folder.resolve()
     cwd = Path.cwd().resolve()

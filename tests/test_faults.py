@@ -139,6 +139,26 @@ def test_map_into_a_read_only_folder_is_one_line(
     assert _hashes(ro) == before and _temps(ro) == []
 
 
+def test_map_into_a_bind_mount_of_the_same_file_system(
+    small_traverse: Path, old_map: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A bind mount on the parent's own device: os.path.ismount misses it, and swapping it
+    gave ``cannot write: Device or resource busy``; its files are now replaced one by one."""
+    source, out = tmp_path / "source", tmp_path / "out"
+    shutil.copytree(old_map, source)
+    (source / "notes.txt").write_text("mine\n")
+    out.mkdir()
+    _mount("--bind", str(source), str(out))
+    try:
+        assert not os.path.ismount(out)  # the case: same device as its parent
+        code = main(["-q", "map", str(small_traverse), "--out", str(out), *MAP_ARGS])
+        assert code == 0, capsys.readouterr().err
+        assert (out / "notes.txt").read_text() == "mine\n" and _temps(out) == []
+    finally:
+        _umount(out)
+    assert _hashes(source).keys() == _hashes(old_map).keys() | {"notes.txt"}
+
+
 # ------------------------------------------------------------ a write failing half way
 
 

@@ -7,7 +7,9 @@ import io
 from pathlib import Path
 
 import numpy as np
+import pytest
 
+from rough_map.errors import FileFormatError
 from rough_map.features import FeatureTable, read_features, write_features
 from rough_map.features.files import _column_text, _fmt
 from rough_map.features.table import COLUMNS, INT_COLUMNS, TEXT_COLUMNS
@@ -66,3 +68,12 @@ def test_features_csv_is_the_row_by_row_text(tmp_path: Path) -> None:
     back = read_features(path)
     assert np.allclose(back["R"], table["R"], rtol=1e-8, atol=0, equal_nan=True)  # 9 digits
     assert list(back["label"]) == list(table["label"])
+
+
+def test_a_table_without_its_metadata_is_one_short_line(tmp_path: Path) -> None:
+    """fuzz seed 23 (read_features): this message was 224 characters with its path."""
+    path = write_features(_table(3), tmp_path / "features.csv")
+    path.with_name("features.csv.json").unlink()
+    with pytest.raises(FileFormatError, match=r"metadata file features\.csv\.json is missing") as e:
+        read_features(path)
+    assert len(str(e.value)) - len(str(path)) <= 150

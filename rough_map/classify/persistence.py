@@ -39,6 +39,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+from rough_map._bounded import clip
 from rough_map.classify._checks import check_loaded_model
 from rough_map.classify.model import MODEL_FORMAT, TerrainModel
 from rough_map.classify.spectral import FEATURE_DOC, INPUT_SCALARS
@@ -276,9 +277,8 @@ def load_terrain_model(name: str | Path, *, verify: bool = True) -> Any:
         expected = read_card(card_file)["sha256"]
         if expected != digest:
             raise ModelError(
-                f"{model_file}: sha256 {digest[:16]}... differs from the {expected!r:.18}... "
-                f"in {card_file.name}: the file was altered or replaced after it was written; "
-                "refusing to load it"
+                f"{model_file}: sha256 {digest[:16]}... is not the {clip(expected, 19)} of "
+                f"{card_file.name}: altered or replaced since it was written; refusing to load it"
             )
     elif verify:
         raise ModelError(

@@ -335,8 +335,7 @@ def _csv_metadata(path: Path, header: list[str]) -> dict[str, Any]:
         raise FileFormatError(
             path,
             f"its metadata file {sidecar.name} is missing (it holds the wavenumbers of the "
-            "psd_NN columns); keep the two files together, or write the table again with "
-            "`rough-map features`",
+            "psd_NN columns); keep them together or rerun `rough-map features`",
         )
     text = read_document_text(sidecar)
     meta = _parse_metadata(text, sidecar, "metadata")
