@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy import ndimage
 from surfaces import Field, power_law_field
 from test_real_data import _texture_scan
 
@@ -56,12 +57,13 @@ def _field(w: float, seed: int = 0) -> Field:
 
 
 @lru_cache(maxsize=4)
-def _band_limited(w: float, seed: int = 0) -> np.ndarray:
-    """The field with every wavenumber along x above the 8 mm grid's Nyquist removed."""
+def _band_limited(w: float, seed: int = 0, spacing: float = SPEC.spacing) -> np.ndarray:
+    """The field with every wavenumber along x above the Nyquist wavenumber of a grid of
+    ``spacing`` m (8 mm by default) removed."""
     f = _field(w, seed).heights
     spec = np.fft.rfft(f, axis=1)
     kx = 2 * np.pi * np.fft.rfftfreq(N_FINE, FINE)
-    spec[:, kx > math.pi / SPEC.spacing] = 0
+    spec[:, kx > math.pi / spacing] = 0
     return np.fft.irfft(spec, n=N_FINE, axis=1)
 
 
@@ -85,6 +87,31 @@ def exact(w: float, offset: tuple[int, int], field: int = 0):
     ix = np.rint((x + fx) / FINE).astype(int) % N_FINE
     iy = np.rint((y + fy) / FINE).astype(int) % N_FINE
     return patch_roughness(_band_limited(w, field)[np.ix_(iy, ix)], SPEC.spacing)
+
+
+def exact_at(w: float, offset: tuple[int, int], spec: PatchSpec, field: int = 0):
+    """The patch read exactly on the coarser grid ``spec`` of the same square: the field
+    band-limited to its Nyquist wavenumber, sampled (cubic interpolation) at its cell
+    centres. What a sparse cloud gridded at that step can at best read."""
+    fx, fy = _origin(offset)
+    k = np.arange(spec.n) + 0.5
+    x, y = spec.x0 + k * spec.spacing + fx, spec.y0 + k * spec.spacing + fy
+    coords = np.stack(np.meshgrid(y, x, indexing="ij")) / FINE
+    heights = ndimage.map_coordinates(
+        _band_limited(w, field, spec.spacing), coords, order=3, mode="grid-wrap"
+    )
+    return patch_roughness(heights, spec.spacing)
+
+
+@cache
+def band_errors(w: float, spec: PatchSpec) -> np.ndarray:
+    """(ln(R / R_exact), w - w_exact) of the sparse rows' patches read exactly on the
+    coarser grid ``spec``, against their exact 8 mm reading: what the band alone costs."""
+    out = []
+    for field, off in SPARSE:
+        ref, r = exact(w, off, field), exact_at(w, off, spec, field)
+        out.append((math.log(r.R / ref.R), r.w - ref.w))
+    return np.array(out)
 
 
 def cloud(
@@ -137,17 +164,35 @@ def test_exact_reading_is_unbiased(w):
 @pytest.mark.parametrize("per_cell", [50, 12, 4])
 def test_dense_clouds_read_like_the_exact_patch(w, per_cell):
     """Stereo-like densities: the median ln(R / R_exact) and w - w_exact are within 0.15
-    and 0.05, and so are the median absolute differences at 12 and 50 points per cell.
+    and 0.05, and so are the median absolute differences (the issue's figures).
 
-    At 4 points per cell the sensor noise (0.3 mm / 2) buries the top third of the band of
-    steep ground (w -2.8): the fit ends lower than the exact reading's, so single patches
-    scatter more about it (median |ln(R / R_exact)| 0.13-0.24 between samples of 12).
+    At 4 points per cell the sensor noise (0.3 mm / 2) buries the top of the band of steep
+    ground (w -2.8) and 2 % of the cells are empty: the fit runs on into the noise with
+    weights that follow its variance, and the floor and the terrain's power both allow
+    for the cells the gap policy filled (``rough_map.psd._noise.gap_filled_floor``).
     """
     e = errors(w, per_cell)
     assert abs(np.median(e[:, 0])) <= 0.15 and abs(np.median(e[:, 1])) <= 0.05
-    spread = (0.15, 0.05) if per_cell >= 12 else (0.3, 0.075)
-    assert np.median(np.abs(e[:, 0])) <= spread[0], np.median(np.abs(e), axis=0)
-    assert np.median(np.abs(e[:, 1])) <= spread[1], np.median(np.abs(e), axis=0)
+    assert np.median(np.abs(e[:, 0])) <= 0.15, np.median(np.abs(e), axis=0)
+    assert np.median(np.abs(e[:, 1])) <= 0.05, np.median(np.abs(e), axis=0)
+
+
+@pytest.mark.parametrize("w", WAVINESS)
+def test_a_gappy_fixed_grid_reads_like_the_exact_patch(w):
+    """2 points per cell on the 8 mm grid (--spacing 0.008 rather than auto): 13 % of the
+    cells are empty and filled by interpolation, which takes up to half the terrain's power
+    at the top of the band. Corrected for that, the patches read within 0.25 of the exact
+    ones in median ln R (+0.11 at w -2.0, within 0.05 at w -2.4 and -2.8, over 64
+    patches; runs of two empty cells, which the model does not describe, remain). Without
+    the correction the median was +0.4 to +0.6."""
+    out = []
+    for i, off in enumerate(OFFSETS):
+        ref = exact(w, off)
+        _, r = _read(cloud(w, off, 2, seed=7000 + i))
+        out.append((math.log(r.R / ref.R), r.w - ref.w))
+    e = np.array(out)
+    assert abs(np.median(e[:, 0])) <= 0.25 and abs(np.median(e[:, 1])) <= 0.07, e
+    assert np.median(np.abs(e[:, 0])) <= 0.3, np.median(np.abs(e), axis=0)
 
 
 @pytest.mark.parametrize("w", WAVINESS)
@@ -165,6 +210,20 @@ def test_sparse_clouds_with_auto_spacing_stay_comparable(w, per_cell):
     e = errors(w, per_cell, auto=True)
     assert abs(np.median(e[:, 0])) <= math.log(1.25), np.median(e, axis=0)
     assert abs(np.median(e[:, 1])) <= 0.1, np.median(e, axis=0)
+
+
+@pytest.mark.parametrize("w", WAVINESS)
+@pytest.mark.parametrize("step", [1, 2, 3])
+def test_exact_patches_read_alike_on_every_step_of_the_ladder(w, step):
+    """Spacing invariance on exact data: the same patches sampled exactly on the 11.2, 16
+    and 22.4 mm grids read the R and w of their 8 mm reading (medians within 0.1 and
+    0.03). Single patches differ more as the band shrinks (median |ln R| 0.08-0.12 at
+    11.2 mm, 0.15-0.19 at 16 mm, 0.23-0.27 at 22.4 mm): the fit sees fewer ordinates
+    and extrapolates further to 1 rad/m. That spread, not the sampling, is most of what
+    separates a sparse cloud's reading from the exact 8 mm one."""
+    e = band_errors(w, spacing_ladder(SPEC)[step])
+    assert abs(np.median(e[:, 0])) <= 0.1 and abs(np.median(e[:, 1])) <= 0.03, e
+    assert np.median(np.abs(e[:, 0])) <= [0.15, 0.22, 0.3][step - 1]
 
 
 def test_sparse_clouds_coarsen_the_grid_and_say_so(caplog):

@@ -317,3 +317,63 @@ def test_fill_gaps_in_place_fills_the_array_given_and_checks_heights_as_before()
         with pytest.raises(InputError, match=match):
             check_heights(g)
     assert check_heights(np.full((2, 8), np.nan)).shape == (2, 8)  # all missing passes
+
+
+# ------------------------------------------------------------------ gaps under a noise floor
+
+
+def _filled_white(share: float, seed: int, rows: int = 20000, n: int = 112):
+    """White profiles (sd 1e-4 m) with a share of isolated cells filled by the gap policy:
+    the heights, the mask of the filled cells."""
+    rng = np.random.default_rng(seed)
+    h = rng.normal(0.0, 1e-4, (rows, n))
+    pick = rng.random((rows, n)) < share
+    pick[:, 1:] &= ~pick[:, :-1]  # isolated cells only
+    pick[:, [0, -1]] = False
+    holed = np.where(pick, np.nan, h)
+    filled, keep = psd.fill_gaps(holed, B, max_gap=B, max_gap_fraction=0.5)
+    assert keep.all()
+    return filled, pick
+
+
+@pytest.mark.parametrize(("share", "rtol"), [(0.05, 0.04), (0.15, 0.08)])
+def test_gap_filled_floor_is_the_spectrum_of_filled_noise(share, rtol):
+    """A closed form against Monte Carlo: white noise whose gaps were filled has the floor
+    ``N g + f (1 - f) v B / pi`` (g the terrain's gain), not the flat ``N``. (The model
+    takes the filled cells as independent; only isolated ones are filled here, which
+    leaves a few per cent at 12 % filled.)"""
+    from rough_map.psd._noise import gap_filled_floor, gap_statistics
+
+    filled, pick = _filled_white(share, seed=int(share * 100))
+    omega, p, _ = _spectra.periodogram(filled, B, "hann")
+    measured = p.mean(axis=0)
+    stats = gap_statistics(filled, pick)
+    assert stats[0] == pytest.approx(pick.mean())
+    assert stats[1] == pytest.approx(1.5e-8, rel=0.03)  # E[(A y)^2] = 1.5 s^2 for white y
+    floor, gain = gap_filled_floor(
+        np.array([1e-8 * B / math.pi]), np.array([stats]), omega.size, filled.shape[1], B
+    )
+    inner = slice(2, -1)  # the detrending takes most of the first ordinates
+    np.testing.assert_allclose(measured[inner], floor[0, inner], rtol=rtol)
+    flat = np.full(omega.size, 1e-8 * B / math.pi)
+    top = slice(-9, -1)  # below the Nyquist ordinate, which has half the density
+    assert (
+        np.abs(measured[top] / flat[top] - 1).mean()
+        > 3 * np.abs(measured[top] / floor[0, top] - 1).mean()
+    )  # the flat floor is what the model corrects
+    assert gain[0, -1] == pytest.approx((1 - 2 * stats[0]) ** 2)
+
+
+def test_gap_statistics_of_a_grid_without_gaps_or_of_a_ramp():
+    from rough_map.psd._noise import gap_filled_floor, gap_statistics
+
+    ramp = np.tile(np.linspace(0.0, 0.1, 50), (4, 1))
+    none = np.zeros(ramp.shape, dtype=bool)
+    assert gap_statistics(ramp, none) == (0.0, 0.0)
+    some = none.copy()
+    some[1, 10] = True
+    share, resid = gap_statistics(ramp, some)
+    assert share == pytest.approx(1 / 200) and resid == pytest.approx(0.0, abs=1e-20)
+    floor, gain = gap_filled_floor(np.array([2.0]), None, 5, 10, B)
+    np.testing.assert_array_equal(floor, np.full((1, 5), 2.0))
+    np.testing.assert_array_equal(gain, np.ones((1, 5)))

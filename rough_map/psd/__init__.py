@@ -33,11 +33,18 @@ White measurement noise of variance ``s^2`` per grid cell adds a flat floor
 the scatter of the points inside each cell) as ``noise_psd`` and set ``subtract_noise=True``
 to remove it: the floor is subtracted from the patch-mean spectrum (smoothed over +-3
 ordinates, so that one bin's scatter does not bias its own correction), every profile's log
-spectrum is shifted by the same per-bin correction, each ordinate weighs in the fit as the
-square of its signal share, and the fit ends at the first bin where the noise takes more
-than half the measured power. It matters when the floor reaches a few
-per cent of the terrain's power at ``pi / B``: smooth surfaces (ISO A-C) seen with stereo,
-or sparse clouds with only a few points per cell.
+spectrum is shifted by the same per-bin correction, and each ordinate weighs in the fit as
+the inverse of the variance that the noise and its correction add to it (relative to the
+same profiles read without noise; ``pi^2/6 / (pi^2/6 + 2 (pi^2/6 - Li2(1 / (1 + q))) +
+q^2 / 4)`` for a noise-to-signal ratio ``q``), so that the band runs on into ordinates the
+noise dominates, with small weights, up to where the signal is 1 % of the power. Cells the
+gap policy filled hold their neighbours' mean: for a share ``f`` of filled cells the
+terrain's power is multiplied by ``(1 + f (cos(Omega B) - 1))^2`` (1 - 4 f at ``pi / B``)
+and the floor becomes that times ``N``, plus the white power of what interpolation misses
+(``f (1 - f)`` times its mean square, measured on the patch, times ``B / pi``); both are
+corrected (:func:`rough_map.psd._noise.gap_filled_floor`). It matters when the floor
+reaches a few per cent of the terrain's power at ``pi / B``: smooth surfaces (ISO A-C) seen
+with stereo, or sparse clouds with only a few points per cell.
 
 Gap policy
 ----------

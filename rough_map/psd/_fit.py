@@ -23,7 +23,7 @@ import numpy as np
 from rough_map import iso8608
 from rough_map.errors import PatchError
 from rough_map.psd._leakage import interp_rows, leakage, leakage_table
-from rough_map.psd._noise import floor_correction
+from rough_map.psd._noise import floor_correction, gap_filled_floor
 from rough_map.psd._options import Options
 from rough_map.psd._regression import Projections, fit_plan, project, project_masked
 from rough_map.psd._result import PatchRoughness
@@ -79,15 +79,19 @@ def fit(
     n: int,
     seg_n: int,
     n_dropped: int,
+    filled: np.ndarray | None = None,
 ) -> list[PatchRoughness | PatchError]:
     """Vectorised log-log fit of ``spectra.p`` (patches, profiles, bins).
 
     ``floors`` is each patch's noise floor in m^3/rad (None: none known), subtracted when
-    ``opt`` says so; ``n`` is the profile length and ``seg_n`` the samples per spectral
-    segment. The per-bin corrections (bias, leakage, noise) are the same for every profile
-    of a patch, so the line fits are computed once on the raw log spectra and the
-    corrections enter through their projections on the fit's two regressors. A patch with
-    too few wavenumbers above its floor gets a :class:`PatchError` in its place.
+    ``opt`` says so, with what the gap filling did to it and to the terrain's power
+    (``filled``: rows of :func:`rough_map.psd._noise.gap_statistics`, None for no gaps,
+    see :func:`rough_map.psd._noise.gap_filled_floor`); ``n`` is the profile length and
+    ``seg_n`` the samples per spectral segment. The per-bin corrections (bias, leakage,
+    noise) are the same for every profile of a patch, so the line fits are computed once
+    on the raw log spectra and the corrections enter through their projections on the
+    fit's two regressors. A patch with too few wavenumbers above its floor gets a
+    :class:`PatchError` in its place.
     """
     p, bias = spectra.p, spectra.bias
     n_bins = p.shape[2]
@@ -97,9 +101,11 @@ def fit(
     noise = np.full(p.shape[0], math.nan) if floors is None else floors
     shift: np.ndarray
     if opt.subtract_noise:
-        shift, weights, short = floor_correction(mean_psd, noise, plan.mask)
+        floor, gain = gap_filled_floor(noise, filled, n_bins, seg_n, spacing)
+        shift, weights, short = floor_correction(mean_psd, floor, plan.mask)
+        shift = shift - np.log(gain)
         if short.any():
-            return _without(short, spectra, opt, noise, spacing, n, seg_n, n_dropped)
+            return _without(short, spectra, opt, noise, spacing, n, seg_n, n_dropped, filled)
     logp = np.log(np.maximum(p, np.float32(1e-38)))
     if opt.subtract_noise:
         table = leakage_table(seg_n, opt.window, opt.gridding)[:, :n_bins]
@@ -146,13 +152,24 @@ def _without(
     n: int,
     seg_n: int,
     n_dropped: int,
+    filled: np.ndarray | None,
 ) -> list[PatchRoughness | PatchError]:
     """The fit of the patches that keep enough wavenumbers above their floor, and a
     :class:`PatchError` for the ``short`` ones, in order."""
     keep = ~short
     kept = Spectra(spectra.omega, spectra.p[keep], spectra.bias, spectra.rms[keep])
+    part = None if filled is None else filled[keep]
     fitted = iter(
-        fit(kept, opt, noise[keep], spacing=spacing, n=n, seg_n=seg_n, n_dropped=n_dropped)
+        fit(
+            kept,
+            opt,
+            noise[keep],
+            spacing=spacing,
+            n=n,
+            seg_n=seg_n,
+            n_dropped=n_dropped,
+            filled=part,
+        )
         if keep.any()
         else []
     )

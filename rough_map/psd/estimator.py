@@ -18,7 +18,7 @@ from rough_map.errors import InputError, PatchError
 from rough_map.patch._params import MAX_CELLS, MAX_PROFILE, MAX_SAMPLES, check_int
 from rough_map.psd._fit import Spectra, fit
 from rough_map.psd._gaps import as_heights, check_heights, check_spacing, fill_gaps
-from rough_map.psd._noise import check_floor
+from rough_map.psd._noise import check_floor, gap_statistics
 from rough_map.psd._options import Options, check_window
 from rough_map.psd._result import PatchRoughness
 from rough_map.psd._spectra import detrended_rms, periodogram, spectrum
@@ -299,10 +299,12 @@ def _estimate(
     floors: np.ndarray | None,
     n_dropped: int = 0,
     check: bool = True,
+    filled: np.ndarray | None = None,
 ) -> list[Outcome]:
     """Estimates for a stack (patches, profiles, samples) of heights, in cache-sized chunks;
     ``floors`` is each patch's noise floor in m^3/rad (None: none known), subtracted when
-    ``opt`` says so.
+    ``opt`` says so; ``filled`` what the gap policy did to each patch (rows of
+    :func:`rough_map.psd._noise.gap_statistics`; None: nothing).
 
     With ``check``, patches with non-finite cells go through :func:`_with_gaps`: found up
     front from the stack's sum (one cheap pass), and for the rare patch whose values only
@@ -325,6 +327,7 @@ def _estimate(
     for start in range(0, n_patch, chunk):
         part = arr[start : start + chunk]
         noise = None if floors is None else floors[start : start + chunk]
+        gaps_filled = None if filled is None else filled[start : start + chunk]
         if fast:
             omega, p, ss = periodogram(part, spacing, opt.window)
             if check:
@@ -338,7 +341,16 @@ def _estimate(
         else:
             omega, p, bias = spectrum(part, spacing, opt.window, opt.nperseg, opt.noverlap)
             spectra = Spectra(omega, p, bias, detrended_rms(part))
-        out += fit(spectra, opt, noise, spacing=spacing, n=n, seg_n=seg_n, n_dropped=n_dropped)
+        out += fit(
+            spectra,
+            opt,
+            noise,
+            spacing=spacing,
+            n=n,
+            seg_n=seg_n,
+            n_dropped=n_dropped,
+            filled=gaps_filled,
+        )
     return out
 
 
@@ -371,10 +383,12 @@ def _with_gaps(
     n_patch, m, n = arr.shape
     out: list[Outcome | None] = [None] * n_patch
     kept: dict[int, np.ndarray] = {}
+    gaps: dict[int, tuple[float, float]] = {}  # what the gap policy did (gap_statistics)
     chunk = max(1, _CHUNK_CELLS // (m * n))
     for start in range(0, n_patch, chunk):
         # the gap policy works profile by profile: on all the chunk's profiles at once
         rows = check_heights(arr[start : start + chunk].reshape(-1, n))  # NaN passes, inf not
+        missing = np.isnan(rows).reshape(-1, m, n)  # before the filling, which is in place
         filled, keep = fill_gaps(
             rows,
             spacing,
@@ -395,11 +409,13 @@ def _with_gaps(
             if n_used < m:
                 log.debug("dropped %d of %d profiles for gaps", m - n_used, m)
             kept[i] = grid[used]
+            gaps[i] = gap_statistics(kept[i], missing[j][used])
     for n_used in sorted({k.shape[0] for k in kept.values()}):
         group = [i for i, k in kept.items() if k.shape[0] == n_used]
         stack = np.stack([kept[i] for i in group])
         noise = None if floors is None else floors[group]
-        results = _estimate(stack, spacing, opt, noise, m - n_used, check=False)
+        part = np.array([gaps[i] for i in group])
+        results = _estimate(stack, spacing, opt, noise, m - n_used, check=False, filled=part)
         for i, result in zip(group, results, strict=True):
             out[i] = result
     return [r for r in out if r is not None]
