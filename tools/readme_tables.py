@@ -135,31 +135,28 @@ def density_table(log: Callable[[str], None]) -> str:
         "w = -2.0 / -2.4 / -2.8 | median w - w_exact | median abs ln(R/R_exact) |",
         "|---|---|---|---|---|",
     ]
+
+    def row(label: str, step: float, errs: list) -> str:
+        """One row: signed medians of ln R and w, and median |ln R|, per waviness."""
+        return (
+            f"| {label} | {step * 1e3:.1f} mm | "
+            + cell([float(np.median(e[:, 0])) for e in errs])
+            + " | "
+            + cell([float(np.median(e[:, 1])) for e in errs])
+            + " | "
+            + " / ".join(f"{float(np.median(np.abs(e[:, 0]))):.2f}" for e in errs)
+            + " |"
+        )
+
     for per_cell, auto in ((50, False), (12, False), (4, False), (2, True), (1, True), (0.5, True)):
         log(f"density: {per_cell} points per cell")
         errs = [d.errors(w, per_cell, auto) for w in d.WAVINESS]
         step = d.auto_spacing(int(per_cell * d.SPEC.n**2), d.SPEC).spacing if auto else 0.008
-        rows.append(
-            f"| {per_cell:g} | {step * 1e3:.1f} mm | "
-            + cell([float(np.median(e[:, 0])) for e in errs])
-            + " | "
-            + cell([float(np.median(e[:, 1])) for e in errs])
-            + " | "
-            + " / ".join(f"{float(np.median(np.abs(e[:, 0]))):.2f}" for e in errs)
-            + " |"
-        )
+        rows.append(row(f"{per_cell:g}", step, errs))
     for spec in d.spacing_ladder(d.SPEC)[1:4]:
         log(f"density: exact patches on the {spec.spacing * 1e3:.1f} mm grid")
         errs = [d.band_errors(w, spec) for w in d.WAVINESS]
-        rows.append(
-            f"| exact (the band alone) | {spec.spacing * 1e3:.1f} mm | "
-            + cell([float(np.median(e[:, 0])) for e in errs])
-            + " | "
-            + cell([float(np.median(e[:, 1])) for e in errs])
-            + " | "
-            + " / ".join(f"{float(np.median(np.abs(e[:, 0]))):.2f}" for e in errs)
-            + " |"
-        )
+        rows.append(row("exact (the band alone)", spec.spacing, errs))
     ref = d.captif_readings(50)
     for per_cell in (100, 20, 12, 4, 2, 1, 0.5):
         log(f"density: CAPTIF at {per_cell} points per cell")
