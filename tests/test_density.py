@@ -114,19 +114,33 @@ def band_errors(w: float, spec: PatchSpec) -> np.ndarray:
     return np.array(out)
 
 
-def cloud(
-    w: float, offset: tuple[int, int], per_cell: float, seed: int, field: int = 0
-) -> np.ndarray:
-    """A random cloud over the patch (and 2 cm around it): ``per_cell`` points per 8 mm
-    cell on average, cubic interpolation of the field, 0.3 mm noise."""
-    rng = np.random.default_rng(seed)
+def random_places(rng: np.random.Generator, per_cell: float) -> tuple[np.ndarray, np.ndarray]:
+    """x and y in m of random points over the patch (and 2 cm around it), ``per_cell``
+    points per 8 mm cell on average."""
     margin = 0.02
     side = SPEC.n * SPEC.spacing + 2 * margin
     count = rng.poisson(per_cell * side**2 / SPEC.spacing**2)
     x = SPEC.x0 - margin + side * rng.random(count)
     y = SPEC.y0 - margin + side * rng.random(count)
+    return x, y
+
+
+def cloud(
+    w: float,
+    offset: tuple[int, int],
+    per_cell: float,
+    seed: int,
+    field: int = 0,
+    stretch: float = 1.0,
+) -> np.ndarray:
+    """A random cloud over the patch (and 2 cm around it): ``per_cell`` points per 8 mm
+    cell on average, cubic interpolation of the field, 0.3 mm noise. With ``stretch`` the
+    field is stretched across the profiles: the height at (x, y) is the field's at
+    (x, stretch * y) (``tests/test_lateral.py``)."""
+    rng = np.random.default_rng(seed)
+    x, y = random_places(rng, per_cell)
     fx, fy = _origin(offset)
-    z = _field(w, field).sample(x + fx, y + fy) + NOISE * rng.standard_normal(count)
+    z = _field(w, field).sample(x + fx, stretch * y + fy) + NOISE * rng.standard_normal(x.size)
     return np.column_stack([x, y, z])
 
 
@@ -314,14 +328,10 @@ def captif_cloud(start: float, per_cell: float, seed: int) -> np.ndarray:
     distance, depth = _texture_scan()
     ok = np.isfinite(depth)
     rng = np.random.default_rng(seed)
-    margin = 0.02
-    side = SPEC.n * SPEC.spacing + 2 * margin
-    count = rng.poisson(per_cell * side**2 / SPEC.spacing**2)
-    x = SPEC.x0 - margin + side * rng.random(count)
-    y = SPEC.y0 - margin + side * rng.random(count)
+    x, y = random_places(rng, per_cell)
     s = start + x - SPEC.x0
     seen = ok[np.clip(np.searchsorted(distance, s), 0, distance.size - 1)]
-    z = -np.interp(s, distance[ok], depth[ok]) + NOISE * rng.standard_normal(count)
+    z = -np.interp(s, distance[ok], depth[ok]) + NOISE * rng.standard_normal(x.size)
     return np.column_stack([x, y, z])[seen]
 
 

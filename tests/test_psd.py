@@ -9,6 +9,7 @@ from scipy import signal
 from rough_map import iso8608, psd
 from rough_map.errors import InputError, PatchError
 from rough_map.psd import _leakage, _regression, _spectra
+from rough_map.psd._lateral import compute_lateral_tables
 
 B = 0.008
 N = 112
@@ -233,6 +234,8 @@ def test_shipped_tables_are_up_to_date():
             np.testing.assert_allclose(
                 data[f"hann_112_{g}"], _leakage.compute_leakage_table(112, "hann", g), atol=1e-9
             )
+        for name, table in zip(("ratio", "coherence"), compute_lateral_tables(112), strict=True):
+            np.testing.assert_allclose(data[f"lateral_{name}_112"], table, atol=1e-9)
 
 
 # --------------------------------------------------------------------------- one call, one type

@@ -122,7 +122,7 @@ def accuracy_table(log: Callable[[str], None]) -> str:
 def density_table(log: Callable[[str], None]) -> str:
     """The same ground at every density (``tests/test_density.py`` measures and checks it):
     synthetic power-law surfaces against the exact reading, and the CAPTIF scan against its
-    own 50-points-per-cell reading."""
+    own 50-points-per-cell reading and against its exact 8 mm reading."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
     import numpy as np
     import test_density as d
@@ -167,7 +167,39 @@ def density_table(log: Callable[[str], None]) -> str:
             f"{np.median(got[:, 1] - ref[:, 1]):+.2f} | "
             f"{np.median(np.abs(got[:, 0] - ref[:, 0])):.2f} |"
         )
+    rows += _captif_exact_rows(log)
     return "\n".join(rows) + "\n"
+
+
+def _captif_exact_rows(log: Callable[[str], None]) -> list[str]:
+    """The CAPTIF scan against its exact 8 mm reading (``tests/test_lateral.py``): clouds
+    at each density, then the scan sampled exactly on the coarser grids (the band alone)."""
+    import numpy as np
+    import test_density as d
+    import test_lateral as lat
+
+    exact = lat.captif_exact()
+    ref = np.repeat(exact, len(d.captif_readings(50)) // len(exact), axis=0)
+
+    def row(label: str, step: float, got: np.ndarray, against: np.ndarray) -> str:
+        diff = got[:, :2] - against
+        return (
+            f"| {label} | {step * 1e3:.1f} mm | "
+            f"{np.median(diff[:, 0]):+.2f} (vs the exact 8 mm scan) | "
+            f"{np.median(diff[:, 1]):+.2f} | {np.median(np.abs(diff[:, 0])):.2f} |"
+        )
+
+    rows = []
+    for per_cell in (50, 12, 4, 2, 1, 0.5):
+        log(f"density: CAPTIF at {per_cell} points per cell against the exact scan")
+        got = d.captif_readings(per_cell)
+        rows.append(row(f"CAPTIF, {per_cell:g}", float(np.median(got[:, 2])), got, ref))
+    for spec in d.spacing_ladder(d.SPEC)[1:4]:
+        log(f"density: the CAPTIF scan exactly on the {spec.spacing * 1e3:.1f} mm grid")
+        rows.append(
+            row("CAPTIF exact (the band alone)", spec.spacing, lat.captif_exact(spec), exact)
+        )
+    return rows
 
 
 TABLES: dict[str, Callable[[Callable[[str], None]], str]] = {

@@ -69,7 +69,8 @@ Layout
 ------
 :mod:`rough_map.psd.estimator` holds the public functions; the private modules hold the
 parts: ``_gaps`` (input checks, gap policy), ``_spectra`` (periodogram, Welch, log bias),
-``_leakage`` (the detrend/window/cell-mean tables), ``_regression`` (the line fit as
+``_leakage`` (the detrend/window/cell-mean tables), ``_lateral`` (the lateral scale of
+cell means, read from adjacent rows), ``_regression`` (the line fit as
 projections), ``_noise`` (the noise floor), ``_fit`` (the fit with the unbiased
 corrections), ``_uncertainty`` (the standard errors ``se_lnR``, ``se_w``, with the
 correlation between profiles) and ``_result`` (:class:`PatchRoughness`).

@@ -22,6 +22,7 @@ import numpy as np
 
 from rough_map import iso8608
 from rough_map.errors import PatchError
+from rough_map.psd._lateral import lateral_log_gain, lateral_scale
 from rough_map.psd._leakage import interp_rows, leakage, leakage_table
 from rough_map.psd._noise import floor_correction, gap_filled_floor
 from rough_map.psd._options import Options
@@ -43,12 +44,17 @@ class Spectra(NamedTuple):
         ``E[ln(P_hat / P)]`` of an ordinate.
     rms : ndarray, shape (patches,)
         Rms of the detrended profiles in m.
+    cross : ndarray, shape (patches, bins), or None
+        Mean cross-spectrum of adjacent profiles in m^3/rad, for the lateral correction
+        of cell means (:mod:`rough_map.psd._lateral`); None: the ground is taken as
+        isotropic.
     """
 
     omega: np.ndarray
     p: np.ndarray
     bias: float
     rms: np.ndarray
+    cross: np.ndarray | None = None
 
 
 def _leakage_offsets(
@@ -68,6 +74,28 @@ def _leakage_offsets(
     lx = interp_rows(w_patch, pr.leak_x)
     la = interp_rows(w_patch, pr.leak_a)
     return lx, la
+
+
+def _lateral_correction(
+    cross: np.ndarray,
+    mean_psd: np.ndarray,
+    floor: np.ndarray,
+    pr: Projections,
+    sx: np.ndarray,
+    opt: Options,
+    seg_n: int,
+) -> np.ndarray:
+    """Per-bin log gain (patches, bins) of each patch's lateral scale over the isotropic
+    one that the cell-mean tables assume (:mod:`rough_map.psd._lateral`), at the
+    waviness the fit finds without it."""
+    if opt.waviness is not None:
+        w = np.full(mean_psd.shape[0], float(opt.waviness))
+    else:  # one step of the leakage iteration of _leakage_offsets is close enough here
+        ym = pr.yx.mean(axis=1) + sx
+        w = (ym - interp_rows(ym / pr.sxx, pr.leak_x)) / pr.sxx
+    usable = np.broadcast_to(pr.mask, mean_psd.shape)
+    position = lateral_scale(cross, mean_psd, floor, w, usable, seg_n)
+    return lateral_log_gain(position, w, seg_n)[:, : mean_psd.shape[1]]
 
 
 def fit(
@@ -100,8 +128,10 @@ def fit(
     mean_psd = p.mean(axis=1, dtype=np.float64)
     noise = np.full(p.shape[0], math.nan) if floors is None else floors
     shift: np.ndarray
+    floor_or_zero: np.ndarray = np.zeros((1, n_bins))
     if opt.subtract_noise:
         floor, gain = gap_filled_floor(noise, filled, n_bins, seg_n, spacing)
+        floor_or_zero = floor
         shift, weights, short = floor_correction(mean_psd, floor, plan.mask)
         shift = shift - np.log(gain)
         if short.any():
@@ -115,6 +145,10 @@ def fit(
         pr = project(logp, plan)
     # Projections of the per-bin corrections on (centred x, mean).
     sx = (shift * pr.xc).sum(axis=1)
+    if unbiased and opt.gridding == "cell_mean" and spectra.cross is not None:
+        lateral = _lateral_correction(spectra.cross, mean_psd, floor_or_zero, pr, sx, opt, seg_n)
+        shift = shift - lateral
+        sx = (shift * pr.xc).sum(axis=1)
     sa = (shift * pr.avg).sum(axis=1)
     if unbiased:
         # E[ln P_hat] = ln P + bias: the bias projects to 0 on xc and to `bias` on the mean.
@@ -157,7 +191,8 @@ def _without(
     """The fit of the patches that keep enough wavenumbers above their floor, and a
     :class:`PatchError` for the ``short`` ones, in order."""
     keep = ~short
-    kept = Spectra(spectra.omega, spectra.p[keep], spectra.bias, spectra.rms[keep])
+    cross = None if spectra.cross is None else spectra.cross[keep]
+    kept = Spectra(spectra.omega, spectra.p[keep], spectra.bias, spectra.rms[keep], cross)
     part = None if filled is None else filled[keep]
     fitted = iter(
         fit(

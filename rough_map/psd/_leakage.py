@@ -171,9 +171,10 @@ def compute_leakage_table(n: int, window: str, gridding: str = "point") -> np.nd
 
 
 def write_leakage_tables(
-    path: Path = SHIPPED_TABLES, sizes: Sequence[int] = (56, 64, 100, 112, 128, 225)
+    path: Path = SHIPPED_TABLES, sizes: Sequence[int] = (40, 56, 64, 80, 100, 112, 128, 225)
 ) -> None:
-    """Precompute the leakage tables of the Hann window for common profile lengths.
+    """Precompute the leakage tables of the Hann window for common profile lengths, and
+    the lateral tables of cell means (:mod:`rough_map.psd._lateral`).
 
     The package ships them (``rough_map/data/leakage_tables.npz``) so that a one-shot
     command does not spend ~50 ms building one; a test checks they are up to date.
@@ -197,9 +198,13 @@ def write_leakage_tables(
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise InputError(f"{path.parent}: cannot create the folder ({err.strerror})") from None
+    from rough_map.psd._lateral import compute_lateral_tables  # it reads this module
+
     tables: dict[str, Any] = {
         f"hann_{n}_{g}": compute_leakage_table(n, "hann", g) for n in sizes for g in GRIDDINGS
     }
+    for n in sizes:
+        tables[f"lateral_ratio_{n}"], tables[f"lateral_coherence_{n}"] = compute_lateral_tables(n)
     with atomic_output(path) as tmp, open(tmp, "wb") as fh:
         np.savez(fh, **tables)
 

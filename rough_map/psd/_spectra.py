@@ -135,16 +135,18 @@ def _fast_plan(n: int, window: str) -> tuple[np.ndarray, np.ndarray, np.ndarray,
     return win32, basis32, fft64, 1.0 / (math.pi * wss)
 
 
-def periodogram(
+def detrended_dft(
     h: np.ndarray, spacing: float, window: str
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Detrended single-segment periodogram of finite profiles (rows), in m^3/rad.
+    """Density-scaled DFT of the detrended, windowed finite profiles (rows).
 
     Detrending is linear, so the spectrum of the detrended, windowed profile is the spectrum
     of the windowed profile minus the spectra of the windowed trend basis (precomputed).
     Computed in float32 after removing one reference height per patch, which keeps about
-    1e-6 relative accuracy. Returns (omega in rad/m, psd, detrended sum of squares per
-    profile in m^2).
+    1e-6 relative accuracy. Returns (omega in rad/m, the ordinates k = 1 ... n // 2 of the
+    DFT scaled so that their squared modulus is the one-sided PSD in m^3/rad (but for the
+    halving of an even length's last ordinate), shape ``h.shape[:-1] + (n // 2,)``, and the
+    detrended sum of squares per profile in m^2).
     """
     shape = h.shape
     n = shape[-1]
@@ -167,12 +169,48 @@ def periodogram(
         trend = basis_fft * c
         spec -= coef[:, :1] * trend[0]
         spec -= coef[:, 1:] * trend[1]
+    omega = 2.0 * np.pi * np.arange(1, n // 2 + 1) / (n * spacing)
+    return omega, spec.reshape(*shape[:-1], spec.shape[-1]), ss.reshape(shape[:-1])
+
+
+def power(spec: np.ndarray, n: int) -> np.ndarray:
+    """One-sided PSD in m^3/rad of the ordinates of :func:`detrended_dft` (profile length
+    ``n``)."""
+    with np.errstate(invalid="ignore", over="ignore"):
         p = spec.real * spec.real
         p += spec.imag * spec.imag
-        if n % 2 == 0:
-            p[:, -1] *= 0.5
-    omega = 2.0 * np.pi * np.arange(1, n // 2 + 1) / (n * spacing)
-    return omega, p.reshape(*shape[:-1], p.shape[-1]), ss.reshape(shape[:-1])
+    if n % 2 == 0:
+        p[..., -1] *= 0.5
+    return p
+
+
+def adjacent_cross(spec: np.ndarray, n: int) -> np.ndarray:
+    """Mean cross-spectrum in m^3/rad of adjacent rows, ``Re(X_i conj(X_(i+1)))``, of the
+    ordinates of :func:`detrended_dft` of a stack (patches, rows, bins): (patches, bins).
+    NaN for patches of one row."""
+    if spec.shape[1] < 2:
+        return np.full((spec.shape[0], spec.shape[2]), np.nan)
+    # Re(a conj(b)) = a.re b.re + a.im b.im: the sum over the rows of the products of the
+    # float views, one pass (no matrix product: the sum runs row by row for every patch).
+    v = np.ascontiguousarray(spec).view(spec.real.dtype)
+    with np.errstate(invalid="ignore", over="ignore"):
+        s = np.einsum("prk,prk->pk", v[:, :-1], v[:, 1:])
+        out = (s[:, 0::2] + s[:, 1::2]).astype(np.float64) / (spec.shape[1] - 1)
+    if n % 2 == 0:
+        out[:, -1] *= 0.5
+    return out
+
+
+def periodogram(
+    h: np.ndarray, spacing: float, window: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Detrended single-segment periodogram of finite profiles (rows), in m^3/rad.
+
+    Returns (omega in rad/m, psd, detrended sum of squares per profile in m^2); see
+    :func:`detrended_dft`.
+    """
+    omega, spec, ss = detrended_dft(h, spacing, window)
+    return omega, power(spec, h.shape[-1]), ss
 
 
 def spectrum(

@@ -21,7 +21,13 @@ from rough_map.psd._gaps import as_heights, check_heights, check_spacing, fill_g
 from rough_map.psd._noise import check_floor, gap_statistics
 from rough_map.psd._options import Options, check_window
 from rough_map.psd._result import PatchRoughness
-from rough_map.psd._spectra import detrended_rms, periodogram, spectrum
+from rough_map.psd._spectra import (
+    adjacent_cross,
+    detrended_dft,
+    detrended_rms,
+    power,
+    spectrum,
+)
 
 log = logging.getLogger(__name__)
 
@@ -81,7 +87,9 @@ def patch_roughness(
         nodes (synthetic grids, interpolated surfaces). ``"cell_mean"``: means of many points
         per cell (a dense cloud gridded by :func:`rough_map.patch.grid_points`); the box
         filter of the averaging steepens w by about 0.25 and raises R about 2.5 times, and
-        the unbiased method corrects for it.
+        the unbiased method corrects for it, for the lateral scale of the ground that the
+        coherence of adjacent rows shows (:mod:`rough_map.psd._lateral`; the rows must be
+        adjacent rows of the grid; with Welch segments the ground is taken as isotropic).
     waviness : float, optional
         Fix the waviness (dimensionless) instead of fitting it (ISO 8608 classifies roads
         with w = -2); then only R is estimated and ``sigma_w`` is 0.
@@ -328,15 +336,23 @@ def _estimate(
         part = arr[start : start + chunk]
         noise = None if floors is None else floors[start : start + chunk]
         gaps_filled = None if filled is None else filled[start : start + chunk]
+        cross = None
         if fast:
-            omega, p, ss = periodogram(part, spacing, opt.window)
+            omega, dft, ss = detrended_dft(part, spacing, opt.window)
+            p = power(dft, n)
+            if opt.gridding == "cell_mean":
+                cross = adjacent_cross(dft, n)
             if check:
                 finite = np.isfinite(ss).all(axis=1)
                 if not finite.all():
                     out += _split(finite, part, noise, spacing, opt, n_dropped)
                     continue
             spectra = Spectra(
-                omega, p, -float(np.euler_gamma), np.sqrt(np.maximum(ss.sum(axis=1), 0.0) / (m * n))
+                omega,
+                p,
+                -float(np.euler_gamma),
+                np.sqrt(np.maximum(ss.sum(axis=1), 0.0) / (m * n)),
+                cross,
             )
         else:
             omega, p, bias = spectrum(part, spacing, opt.window, opt.nperseg, opt.noverlap)

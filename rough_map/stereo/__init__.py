@@ -49,11 +49,15 @@ Limits: the stereo error adds, on rendered ground, 2e-10 to 2e-9 m^3/rad at 112 
 patches (detrended rms below about 2 mm), whose ``w`` then comes out too flat. On the
 simulator's surfaces it is as large as the terrain's own PSD at 120-393 rad/m: against a
 dense noise-free cloud of the true surface, ``frame_features`` of single stereo frames
-(compact soil, gravel, ploughed soil, dirt road; seeds 0-2) give R 0.45-1.5x the truth and
-``w`` +0.2 to -0.03 off (+0.09 on average), 4-5 frames of 12 within the issue's +-25 % and
-+-0.1, with the one-pass patch path as with this one: moving the prior by a fraction of a
-pixel (a 2 mm change of plane) moves R by +-40 % and ``w`` by +-0.1 on a given frame
-(tests/test_stereo.py, ``test_stereo_features_agree_with_the_true_surface``, xfail).
+(compact soil, gravel, ploughed soil, dirt road; seeds 0-2) give R 0.56-2.4x the truth and
+``w`` -0.16 to +0.15 off (-0.02 on average), 6 frames of 12 within the issue's +-25 % and
++-0.1. (Before the cell-mean correction read the cloud's lateral scale it was R 0.47-1.8x,
+``w`` +0.05 on average, 5 of 12: the matching window smooths across the rows, so stereo
+clouds read a lateral scale of 0.2-0.6, see :mod:`rough_map.psd._lateral`.) Moving the
+prior by a fraction of a pixel (a 2 mm change of plane) moves R by +-40 % and ``w`` by
++-0.1 on a given frame (tests/test_stereo.py,
+``test_stereo_features_agree_with_the_true_surface``: met at seed 0 on compact soil, gravel
+and ploughed soil, xfail on the dirt road).
 
 Any calibrated rig: :func:`load_calibration` reads rough_map's calibration, the two
 cameras' ROS ``CameraInfo`` files or an OpenCV ``FileStorage`` file; a raw pair is rectified
