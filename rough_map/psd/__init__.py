@@ -70,7 +70,8 @@ Layout
 :mod:`rough_map.psd.estimator` holds the public functions; the private modules hold the
 parts: ``_gaps`` (input checks, gap policy), ``_spectra`` (periodogram, Welch, log bias),
 ``_leakage`` (the detrend/window/cell-mean tables), ``_lateral`` (the lateral scale of
-cell means, read from adjacent rows), ``_regression`` (the line fit as
+cell means, read from adjacent rows), ``_shipped`` (writes the tables the package ships),
+``_regression`` (the line fit as
 projections), ``_noise`` (the noise floor), ``_fit`` (the fit with the unbiased
 corrections), ``_uncertainty`` (the standard errors ``se_lnR``, ``se_w``, with the
 correlation between profiles) and ``_result`` (:class:`PatchRoughness`).
@@ -78,8 +79,9 @@ correlation between profiles) and ``_result`` (:class:`PatchRoughness`).
 
 from rough_map.patch import METHODS
 from rough_map.psd._gaps import fill_gaps
-from rough_map.psd._leakage import GRIDDINGS, write_leakage_tables
+from rough_map.psd._leakage import GRIDDINGS
 from rough_map.psd._result import PatchRoughness
+from rough_map.psd._shipped import write_leakage_tables
 from rough_map.psd._spectra import log_bias
 from rough_map.psd.estimator import (
     patch_roughness,
