@@ -241,7 +241,7 @@ def test_exact_patches_read_alike_on_every_step_of_the_ladder(w, step):
 
 
 def test_sparse_clouds_coarsen_the_grid_and_say_so(caplog):
-    pts = cloud(-2.4, OFFSETS[0], 0.5, seed=3)
+    pts = cloud(-2.4, OFFSETS[0], 0.4, seed=3)
     with caplog.at_level("INFO", logger="rough_map.patch"):
         grid, r = _read(pts, auto=True)
     assert grid.spec.spacing == pytest.approx(0.0224)
@@ -283,7 +283,16 @@ def test_spacing_ladder_keeps_the_patch_and_its_wavenumbers():
 
 
 @pytest.mark.parametrize(
-    ("per_cell", "spacing"), [(50, 0.008), (2.5, 0.008), (2.0, 0.0112), (1.0, 0.016), (0.5, 0.0224)]
+    ("per_cell", "spacing"),
+    [
+        (50, 0.008),
+        (1.95, 0.008),
+        (1.8, 0.0112),
+        (1.0, 0.0112),
+        (0.9, 0.016),
+        (0.5, 0.016),
+        (0.45, 0.0224),
+    ],
 )
 def test_auto_spacing_picks_the_finest_step_with_enough_points(per_cell, spacing):
     assert auto_spacing(int(per_cell * 112**2), SPEC).spacing == pytest.approx(spacing)
@@ -305,7 +314,7 @@ def test_extraction_records_auto_spacing():
     ex = Extraction(auto_spacing=True)
     assert ex.to_dict()["spacing"] == "auto"
     assert Extraction.from_dict(ex.to_dict()) == ex
-    fixed = ex.resolve(int(0.5 * 112**2))
+    fixed = ex.resolve(int(0.4 * 112**2))
     assert not fixed.auto_spacing and fixed.patch.spacing == pytest.approx(0.0224)
     assert Extraction().resolve(10) == Extraction()  # a fixed step is kept
 

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import math
 from functools import cache
-from unittest import mock
 
 import numpy as np
 import pytest
@@ -32,7 +31,7 @@ from test_density import (
 from test_real_data import _texture_scan
 
 from rough_map.patch import PatchSpec, spacing_ladder
-from rough_map.psd import _fit, patch_roughness
+from rough_map.psd import patch_roughness
 from rough_map.psd._lateral import (
     A_NODES,
     lateral_log_gain,
@@ -59,20 +58,9 @@ def stretched_exact(w: float, offset, a: float):
 
 
 def read_with_scale(points: np.ndarray):
-    """The cloud's reading (spacing auto off) and the lateral scale ``a`` that the fit read
-    from its grid (the fit's own call, recorded)."""
-    seen: list[float] = []
-    real = _fit.lateral_scale
-
-    def record(*args, **kwargs):
-        pos = real(*args, **kwargs)
-        seen.extend(lateral_scale_value(pos))
-        return pos
-
-    with mock.patch.object(_fit, "lateral_scale", record):
-        _, r = _read(points)
-    assert len(seen) == 1
-    return r, seen[0]
+    """The cloud's reading (spacing auto off) and the lateral scale ``a`` it reports."""
+    _, r = _read(points)
+    return r, r.lateral_scale
 
 
 # --------------------------------------------------------------------------- the tables
@@ -118,6 +106,26 @@ def test_patches_without_usable_ordinates_are_taken_as_isotropic():
 
 
 # ---------------------------------------------------------------- surfaces of known scale
+
+
+def test_the_scale_is_read_only_for_cell_means():
+    """Reported where the fit reads it (unbiased, cell means, one segment), NaN elsewhere;
+    the CLI shows it."""
+    pts = cloud(-2.4, OFFSETS[0], 12, seed=5, stretch=0.0)
+    r, scale = read_with_scale(pts)
+    assert scale == r.as_dict()["lateral_scale"] and scale <= 0.2
+    grid = _read(pts)[0]
+    heights = grid.heights
+    for kwargs in (
+        {},  # point samples: no cell-mean correction
+        {"method": "paper", "gridding": "cell_mean"},
+        {"nperseg": 56, "gridding": "cell_mean"},  # Welch segments
+    ):
+        assert math.isnan(patch_roughness(heights, SPEC.spacing, **kwargs).lateral_scale)
+    again = patch_roughness(
+        heights, SPEC.spacing, gridding="cell_mean", noise_psd=grid.noise_psd, subtract_noise=True
+    )
+    assert again.lateral_scale == scale  # the library call the cloud's reading makes
 
 
 @pytest.mark.parametrize("a", STRETCHES)
@@ -201,11 +209,12 @@ def test_captif_readings_depend_on_the_band():
     assert np.median(np.abs(coarse[:, 0] - captif_exact()[:, 0])) > math.log(1.6)
 
 
-@pytest.mark.parametrize("per_cell", [50, 12, 4])
+@pytest.mark.parametrize("per_cell", [50, 12, 4, 2])
 def test_captif_clouds_read_near_the_exact_scan(per_cell):
     """Real chipseal swept across the patch: the clouds' lateral scale reads 0 and their
     R and w come near the scan's exact 8 mm reading (median differences within 0.3 in
-    ln R and 0.1 in w). Taken as isotropic they read -0.9 to -1.1 in ln R and +0.33 to
+    ln R and 0.1 in w), down to 2 points per cell, where auto spacing keeps the 8 mm
+    grid. Taken as isotropic they read -0.9 to -1.1 in ln R and +0.33 to
     +0.38 in w at every density. What is left is the chipseal's spectrum, which falls
     as Omega^-2.3 above the band where the cell-mean tables extend the power law."""
     ref = captif_exact()

@@ -148,6 +148,7 @@ def run_cloud(args: argparse.Namespace) -> int:
         ],
         ["w", f"{rough.w:.3f}  (sigma {rough.sigma_w:.3f}, se {rough.se_w:.3f})"],
         ["rms", f"{rough.rms * 1e3:.2f} mm"],
+        ["lateral", _lateral(rough.lateral_scale)],
         ["profiles", f"{rough.n_profiles} used, {rough.n_dropped} dropped"],
         [
             "noise",
@@ -162,3 +163,13 @@ def run_cloud(args: argparse.Namespace) -> int:
     ]
     print(table(rows))
     return 0
+
+
+def _lateral(scale: float) -> str:
+    """The lateral scale row: how alike neighbouring profiles are."""
+    if not math.isfinite(scale):
+        return "not read (the paper's method, or Welch segments)"
+    return (
+        f"scale {scale:.2f} (1: isotropic ground, 0: the same across the patch; "
+        "corrected for in the cell means)"
+    )

@@ -22,7 +22,7 @@ import numpy as np
 
 from rough_map import iso8608
 from rough_map.errors import PatchError
-from rough_map.psd._lateral import lateral_log_gain, lateral_scale
+from rough_map.psd._lateral import lateral_log_gain, lateral_scale, lateral_scale_value
 from rough_map.psd._leakage import interp_rows, leakage, leakage_table
 from rough_map.psd._noise import floor_correction, gap_filled_floor
 from rough_map.psd._options import Options
@@ -77,17 +77,23 @@ def _leakage_offsets(
 
 
 def _lateral_correction(
-    cross: np.ndarray,
+    spectra: Spectra,
     mean_psd: np.ndarray,
     floor: np.ndarray,
     pr: Projections,
     sx: np.ndarray,
     opt: Options,
     seg_n: int,
-) -> np.ndarray:
+) -> tuple[np.ndarray | None, np.ndarray]:
     """Per-bin log gain (patches, bins) of each patch's lateral scale over the isotropic
     one that the cell-mean tables assume (:mod:`rough_map.psd._lateral`), at the
-    waviness the fit finds without it."""
+    waviness the fit finds without it, and the lateral scale ``a`` of each patch.
+
+    Only ``unbiased`` fits of cell means with the cross-spectrum of one segment are
+    corrected; the others get None and a scale of NaN (not read)."""
+    cross = spectra.cross
+    if opt.method != "unbiased" or opt.gridding != "cell_mean" or cross is None:
+        return None, np.full(mean_psd.shape[0], math.nan)
     if opt.waviness is not None:
         w = np.full(mean_psd.shape[0], float(opt.waviness))
     else:  # one step of the leakage iteration of _leakage_offsets is close enough here
@@ -95,7 +101,8 @@ def _lateral_correction(
         w = (ym - interp_rows(ym / pr.sxx, pr.leak_x)) / pr.sxx
     usable = np.broadcast_to(pr.mask, mean_psd.shape)
     position = lateral_scale(cross, mean_psd, floor, w, usable, seg_n)
-    return lateral_log_gain(position, w, seg_n)[:, : mean_psd.shape[1]]
+    gain = lateral_log_gain(position, w, seg_n)[:, : mean_psd.shape[1]]
+    return gain, lateral_scale_value(position)
 
 
 def fit(
@@ -145,8 +152,8 @@ def fit(
         pr = project(logp, plan)
     # Projections of the per-bin corrections on (centred x, mean).
     sx = (shift * pr.xc).sum(axis=1)
-    if unbiased and opt.gridding == "cell_mean" and spectra.cross is not None:
-        lateral = _lateral_correction(spectra.cross, mean_psd, floor_or_zero, pr, sx, opt, seg_n)
+    lateral, scale = _lateral_correction(spectra, mean_psd, floor_or_zero, pr, sx, opt, seg_n)
+    if lateral is not None:
         shift = shift - lateral
         sx = (shift * pr.xc).sum(axis=1)
     sa = (shift * pr.avg).sum(axis=1)
@@ -173,7 +180,9 @@ def fit(
     # Standard errors of the patch means, with the correlation between profiles.
     se = standard_errors(b, wv, wm, pr, opt, seg_n=seg_n, bias=bias)
     return list(
-        _results(spectra, opt, b, wv, mean_psd, pr.mask, fit_res, noise, spacing, n, n_dropped, se)
+        _results(
+            spectra, opt, b, wv, mean_psd, pr.mask, fit_res, noise, spacing, n, n_dropped, se, scale
+        )
     )
 
 
@@ -232,9 +241,11 @@ def _results(
     n: int,
     n_dropped: int,
     se: tuple[np.ndarray, np.ndarray],
+    scale: np.ndarray,
 ) -> list[PatchRoughness]:
     """One :class:`PatchRoughness` per patch from the per-profile intercepts ``b`` and
-    slopes ``wv`` (patches, profiles) and the standard errors ``se`` of their means."""
+    slopes ``wv`` (patches, profiles), the standard errors ``se`` of their means and the
+    lateral scale ``scale`` of each patch (NaN: not read)."""
     n_patch, m = b.shape
     wm = wv.mean(axis=1)
     bm = b.mean(axis=1)
@@ -266,6 +277,7 @@ def _results(
             noise_subtracted=bool(opt.subtract_noise),
             method=opt.method,
             omega0=opt.omega0,
+            lateral_scale=float(scale[i]),
         )
         for i in range(n_patch)
     ]

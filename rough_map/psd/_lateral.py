@@ -38,7 +38,7 @@ import math
 import numpy as np
 
 from rough_map.psd._cache import table_cache
-from rough_map.psd._leakage import SHIPPED_TABLES
+from rough_map.psd._leakage import shipped_array
 from rough_map.psd._spectra import frozen
 from rough_map.psd._uncertainty import _TRI_S, _TRI_W, W_NODES, _matern
 
@@ -60,16 +60,12 @@ def lateral_tables(n: int) -> tuple[np.ndarray, np.ndarray]:
     Read from the shipped tables when they hold them (``rough_map/data/leakage_tables.npz``,
     :func:`rough_map.psd.write_leakage_tables`), else computed."""
     shape = (A_NODES.size, W_NODES.size, n // 2)
-    tables = None
-    if SHIPPED_TABLES.exists():
-        with np.load(SHIPPED_TABLES) as data:
-            keys = (f"lateral_ratio_{n}", f"lateral_coherence_{n}")
-            if all(k in data.files and data[k].shape == shape for k in keys):
-                tables = (data[keys[0]], data[keys[1]])
-    if tables is None:
-        tables = compute_lateral_tables(n)
-    frozen(*tables)
-    return tables
+    ratio = shipped_array(f"lateral_ratio_{n}", shape)
+    coherence = shipped_array(f"lateral_coherence_{n}", shape)
+    if ratio is None or coherence is None:
+        ratio, coherence = compute_lateral_tables(n)
+    frozen(ratio, coherence)
+    return ratio, coherence
 
 
 def compute_lateral_tables(n: int) -> tuple[np.ndarray, np.ndarray]:

@@ -47,16 +47,22 @@ def leakage_table(n: int, window: str, gridding: str = "point") -> np.ndarray:
 
     Returns a read-only array of shape ``(len(W_GRID), n // 2)`` (natural-log units).
     """
-    key = f"{window}_{n}_{gridding}"
-    table = None
-    if SHIPPED_TABLES.exists():
-        with np.load(SHIPPED_TABLES) as data:
-            if key in data.files and data[key].shape == (W_GRID.size, n // 2):
-                table = data[key]
+    table = shipped_array(f"{window}_{n}_{gridding}", (W_GRID.size, n // 2))
     if table is None:
         table = compute_leakage_table(n, window, gridding)
     frozen(table)
     return table
+
+
+def shipped_array(key: str, shape: tuple[int, ...]) -> np.ndarray | None:
+    """The array ``key`` of the shipped tables (:data:`SHIPPED_TABLES`) if they hold it
+    with this shape, else None (the caller computes it)."""
+    if not SHIPPED_TABLES.exists():
+        return None
+    with np.load(SHIPPED_TABLES) as data:
+        if key in data.files and data[key].shape == shape:
+            return np.asarray(data[key])
+    return None
 
 
 def _cell_mean_gain(nu: np.ndarray, waviness: np.ndarray, aliases: int = 4) -> np.ndarray:

@@ -59,6 +59,12 @@ class PatchRoughness:
         ``"unbiased"`` or ``"paper"``.
     omega0 : float
         Reference wavenumber of R in rad/m.
+    lateral_scale : float
+        How fast the ground decorrelates across the profiles relative to along them
+        (dimensionless, :mod:`rough_map.psd._lateral`): 1 isotropic, 0 the same across
+        the patch (swept or ridged ground), above 1 rougher across than along. Read from
+        adjacent profiles of cell-mean grids (``unbiased``, one segment), where it
+        corrects the fit; NaN where it is not read.
     """
 
     R: float
@@ -83,6 +89,7 @@ class PatchRoughness:
     noise_subtracted: bool
     method: str
     omega0: float
+    lateral_scale: float = math.nan
 
     @property
     def sigma_lnR(self) -> float:
@@ -105,4 +112,5 @@ class PatchRoughness:
             "fit_residual": self.fit_residual,
             "noise_psd": self.noise_psd,
             "method": self.method,
+            "lateral_scale": self.lateral_scale,
         }
