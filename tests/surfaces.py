@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 import numpy as np
 from scipy import ndimage
@@ -80,7 +80,31 @@ class Field:
         """Heights in m at points ``(x, y)`` in m, by spline interpolation of the grid
         (cubic by default), wrapping around the periodic domain."""
         coords = np.stack([np.asarray(y, float), np.asarray(x, float)]) / self.spacing
+        if order == 3:
+            return sample_spline(self.coefficients, coords)
         return ndimage.map_coordinates(self.heights, coords, order=order, mode="grid-wrap")
+
+    @cached_property
+    def coefficients(self) -> np.ndarray:
+        """Cubic spline coefficients of the periodic grid (:func:`spline_coefficients`),
+        computed once per field: a cloud's sample then costs its points, not the field."""
+        return spline_coefficients(self.heights)
+
+
+def spline_coefficients(heights: np.ndarray) -> np.ndarray:
+    """Cubic spline coefficients of a periodic grid, read-only: what
+    ``ndimage.map_coordinates(order=3, mode="grid-wrap")`` computes on every call (about
+    0.2 s for 2048 x 2048), for :func:`sample_spline`."""
+    coeffs = ndimage.spline_filter(heights, order=3, mode="grid-wrap")
+    coeffs.setflags(write=False)
+    return coeffs
+
+
+def sample_spline(coefficients: np.ndarray, coords: np.ndarray) -> np.ndarray:
+    """Cubic interpolation at ``coords`` (rows, columns; in cells) of the periodic grid whose
+    :func:`spline_coefficients` are given: the same numbers as ``map_coordinates`` on the
+    grid itself."""
+    return ndimage.map_coordinates(coefficients, coords, order=3, mode="grid-wrap", prefilter=False)
 
 
 def fold_spectrum(kx: np.ndarray, ky: np.ndarray, spacing: float, w: float) -> np.ndarray:

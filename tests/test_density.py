@@ -17,8 +17,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from scipy import ndimage
-from surfaces import Field, power_law_field
+from surfaces import Field, power_law_field, sample_spline, spline_coefficients
 from test_real_data import _texture_scan
 
 from rough_map.errors import InputError, PatchError
@@ -97,10 +96,14 @@ def exact_at(w: float, offset: tuple[int, int], spec: PatchSpec, field: int = 0)
     k = np.arange(spec.n) + 0.5
     x, y = spec.x0 + k * spec.spacing + fx, spec.y0 + k * spec.spacing + fy
     coords = np.stack(np.meshgrid(y, x, indexing="ij")) / FINE
-    heights = ndimage.map_coordinates(
-        _band_limited(w, field, spec.spacing), coords, order=3, mode="grid-wrap"
-    )
+    heights = sample_spline(band_limited_spline(w, field, spec.spacing), coords)
     return patch_roughness(heights, spec.spacing)
+
+
+@lru_cache(maxsize=8)
+def band_limited_spline(w: float, seed: int = 0, spacing: float = SPEC.spacing) -> np.ndarray:
+    """Spline coefficients of :func:`_band_limited`, for cubic sampling of it."""
+    return spline_coefficients(_band_limited(w, seed, spacing))
 
 
 @cache

@@ -15,16 +15,16 @@ from functools import cache
 
 import numpy as np
 import pytest
-from scipy import ndimage
+from surfaces import sample_spline
 from test_density import (
     CAPTIF_STARTS,
     FINE,
     OFFSETS,
     SPEC,
-    _band_limited,
     _centres,
     _origin,
     _read,
+    band_limited_spline,
     captif_cloud,
     cloud,
 )
@@ -44,9 +44,9 @@ from rough_map.psd._uncertainty import W_NODES, _lateral_coherence
 STRETCHES = [0.0, 0.3, 1.0]
 
 
-def _sample(heights: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+def _sample(coefficients: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     coords = np.stack([np.asarray(y, float), np.asarray(x, float)]) / FINE
-    return ndimage.map_coordinates(heights, coords, order=3, mode="grid-wrap")
+    return sample_spline(coefficients, coords)
 
 
 def stretched_exact(w: float, offset, a: float):
@@ -54,7 +54,7 @@ def stretched_exact(w: float, offset, a: float):
     fx, fy = _origin(offset)
     x, y = _centres()
     yy, xx = np.meshgrid(a * y + fy, x + fx, indexing="ij")
-    return patch_roughness(_sample(_band_limited(w), xx, yy), SPEC.spacing)
+    return patch_roughness(_sample(band_limited_spline(w), xx, yy), SPEC.spacing)
 
 
 def read_with_scale(points: np.ndarray):
