@@ -109,8 +109,8 @@ def test_patches_without_usable_ordinates_are_taken_as_isotropic():
 
 
 def test_the_scale_is_read_only_for_cell_means():
-    """Reported where the fit reads it (unbiased, cell means, one segment), NaN elsewhere;
-    the CLI shows it."""
+    """Reported where the fit reads it (unbiased, cell means, one segment), NaN elsewhere
+    (the CLI's ``lateral`` line is in the README transcripts that test_readme reruns)."""
     pts = cloud(-2.4, OFFSETS[0], 12, seed=5, stretch=0.0)
     r, scale = read_with_scale(pts)
     assert scale == r.as_dict()["lateral_scale"] and scale <= 0.2
