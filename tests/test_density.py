@@ -255,6 +255,32 @@ def test_sparse_clouds_coarsen_the_grid_and_say_so(caplog):
     assert dense.spec == SPEC  # dense enough for the spacing asked for
 
 
+def test_features_say_where_the_noise_takes_over(tmp_path, capsys):
+    """Smooth ground from a sparse noisy sensor: ``rough-map features CLOUD`` says how far up
+    the band the ground stays above the noise floor (``omega_noise``), and that is below
+    the top of the fit; the dense cloud of rough ground keeps it to the top, unsaid."""
+    import json
+
+    from rough_map.cli.main import main
+
+    rng = np.random.default_rng(5)
+    pts = cloud(-2.8, OFFSETS[0], 1, seed=5)
+    pts[:, 2] = 0.2 * pts[:, 2] + NOISE * rng.standard_normal(len(pts))  # 0.6 mm band rms
+    np.save(tmp_path / "smooth.npy", pts)
+    assert main(["features", str(tmp_path / "smooth.npy")]) == 0
+    band = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("band"))
+    assert "; ground above the noise floor to " in band
+    assert main(["features", str(tmp_path / "smooth.npy"), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert 7.0 < doc["omega_noise"] < doc["band_rad_per_m"][1]
+    assert f"to {doc['omega_noise']:.1f} rad/m" in band
+    np.save(tmp_path / "dense.npy", cloud(-2.4, OFFSETS[0], 12, seed=5))
+    assert main(["features", str(tmp_path / "dense.npy"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["omega_noise"] > 380  # the top of the fit
+    assert main(["features", str(tmp_path / "dense.npy")]) == 0
+    assert "noise floor to" not in capsys.readouterr().out
+
+
 def test_fixed_spacing_on_a_sparse_cloud_is_what_auto_avoids():
     """Without auto the 8 mm grid of a 0.5-point cloud has too many gaps to be read."""
     pts = cloud(-2.4, OFFSETS[0], 0.5, seed=3)

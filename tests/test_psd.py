@@ -154,6 +154,29 @@ def test_noise_floor_subtraction_moves_back_to_the_truth():
     assert np.median([e.w for e in raw]) > np.median([e.w for e in fixed])  # noise flattens
 
 
+def test_omega_noise_is_where_the_ground_meets_the_floor():
+    """``omega_noise``: the wavenumber where the ground's R Omega^w falls to the floor F,
+    (R / F)^(-1 / w); the top of the fit without noise; 0 where the floor is above the
+    ground over the whole band; NaN when no floor is subtracted."""
+    rng = np.random.default_rng(4)
+    phi0, w = iso8608.PHI0["B"], -2.0
+    clean = np.stack(
+        [iso8608.synthesize_surface((2 * N, 2 * N), B, phi0, w, seed=s)[:N, :N] for s in range(6)]
+    )
+    for crossing in (60.0, 150.0):  # rad/m
+        floor = phi0 * crossing**w
+        noisy = clean + rng.normal(0, math.sqrt(floor * math.pi / B), clean.shape)
+        got = psd.patch_roughness_batch(noisy, B, noise_psd=floor, subtract_noise=True)
+        reach = np.median([r.omega_noise for r in got])
+        assert abs(math.log(reach / crossing)) < 0.15, (crossing, reach)
+    exact = psd.patch_roughness(clean[0], B, noise_psd=0.0, subtract_noise=True)
+    assert exact.omega_noise == exact.omega[exact.fit_mask][-1]
+    assert math.isnan(psd.patch_roughness(clean[0], B).omega_noise)
+    low = phi0 * exact.omega[1] ** w  # the ground's power at the fit's first ordinate
+    buried = clean[0] + rng.normal(0, math.sqrt(3 * low * math.pi / B), clean[0].shape)
+    assert psd.patch_roughness(buried, B, noise_psd=3 * low, subtract_noise=True).omega_noise == 0
+
+
 def test_subtract_noise_needs_a_floor():
     h = iso8608.synthesize_surface((N, N), B, "C", seed=0)
     with pytest.raises(InputError, match="noise_psd"):

@@ -6,6 +6,7 @@ import argparse
 import math
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from rough_map.cli._common import (
     add_allow_outside_arg,
@@ -19,6 +20,9 @@ from rough_map.cli._common import (
     table,
 )
 from rough_map.patch import Extraction
+
+if TYPE_CHECKING:
+    from rough_map.psd import PatchRoughness
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -140,7 +144,7 @@ def run_cloud(args: argparse.Namespace) -> int:
             f"{grid.fill_fraction:.0%} of cells filled, "
             f"{grid.points_per_cell:.1f} points per cell ({grid.gridding})",
         ],
-        ["band", f"{rough.omega[0]:.2f} to {rough.omega[-1]:.1f} rad/m"],
+        ["band", f"{rough.omega[0]:.2f} to {rough.omega[-1]:.1f} rad/m" + _reach(rough)],
         [
             "R",
             f"{rough.R:.3e} m³/rad  (sigma {rough.sigma_R:.2e}, se of ln R {rough.se_lnR:.2f})"
@@ -163,6 +167,16 @@ def run_cloud(args: argparse.Namespace) -> int:
     ]
     print(table(rows))
     return 0
+
+
+def _reach(rough: PatchRoughness) -> str:
+    """How far up the band the ground stays above the noise floor, if the noise ends it."""
+    top = rough.omega_noise
+    if not math.isfinite(top) or top >= rough.omega[rough.fit_mask][-1]:
+        return ""
+    if top == 0.0:
+        return "; the noise floor has more power than the ground over the whole band"
+    return f"; ground above the noise floor to {top:.1f} rad/m"
 
 
 def _lateral(scale: float) -> str:

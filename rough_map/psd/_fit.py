@@ -24,7 +24,7 @@ from rough_map import iso8608
 from rough_map.errors import PatchError
 from rough_map.psd._lateral import lateral_log_gain, lateral_scale, lateral_scale_value
 from rough_map.psd._leakage import interp_rows, leakage, leakage_table
-from rough_map.psd._noise import floor_correction, gap_filled_floor
+from rough_map.psd._noise import floor_correction, gap_filled_floor, noise_reach
 from rough_map.psd._options import Options
 from rough_map.psd._regression import Projections, fit_plan, project, project_masked
 from rough_map.psd._result import PatchRoughness
@@ -136,9 +136,11 @@ def fit(
     noise = np.full(p.shape[0], math.nan) if floors is None else floors
     shift: np.ndarray
     floor_or_zero: np.ndarray = np.zeros((1, n_bins))
+    reach = np.full(p.shape[0], math.nan)  # omega_noise of each patch
     if opt.subtract_noise:
         floor, gain = gap_filled_floor(noise, filled, n_bins, seg_n, spacing)
         floor_or_zero = floor
+        reach = noise_reach(mean_psd, floor, plan.mask, spectra.omega)
         shift, weights, short = floor_correction(mean_psd, floor, plan.mask)
         shift = shift - np.log(gain)
         if short.any():
@@ -179,9 +181,10 @@ def fit(
     fit_res = np.sqrt((resid * resid).sum(axis=1) / pr.mask.sum(axis=1))
     # Standard errors of the patch means, with the correlation between profiles.
     se = standard_errors(b, wv, wm, pr, opt, seg_n=seg_n, bias=bias)
+    read = (scale, reach)
     return list(
         _results(
-            spectra, opt, b, wv, mean_psd, pr.mask, fit_res, noise, spacing, n, n_dropped, se, scale
+            spectra, opt, b, wv, mean_psd, pr.mask, fit_res, noise, spacing, n, n_dropped, se, read
         )
     )
 
@@ -241,11 +244,13 @@ def _results(
     n: int,
     n_dropped: int,
     se: tuple[np.ndarray, np.ndarray],
-    scale: np.ndarray,
+    read: tuple[np.ndarray, np.ndarray],
 ) -> list[PatchRoughness]:
     """One :class:`PatchRoughness` per patch from the per-profile intercepts ``b`` and
-    slopes ``wv`` (patches, profiles), the standard errors ``se`` of their means and the
-    lateral scale ``scale`` of each patch (NaN: not read)."""
+    slopes ``wv`` (patches, profiles), the standard errors ``se`` of their means, and
+    ``read``: the lateral scale (NaN: not read) and ``omega_noise`` in rad/m (NaN: no floor
+    subtracted) of each patch."""
+    scale, reach = read
     n_patch, m = b.shape
     wm = wv.mean(axis=1)
     bm = b.mean(axis=1)
@@ -278,6 +283,7 @@ def _results(
             method=opt.method,
             omega0=opt.omega0,
             lateral_scale=float(scale[i]),
+            omega_noise=float(reach[i]),
         )
         for i in range(n_patch)
     ]

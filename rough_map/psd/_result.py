@@ -65,6 +65,12 @@ class PatchRoughness:
         the patch (swept or ridged ground), above 1 rougher across than along. Read from
         adjacent profiles of cell-mean grids (``unbiased``, one segment), where it
         corrects the fit; NaN where it is not read.
+    omega_noise : float
+        Highest wavenumber in rad/m up to which the terrain's power stays at least the
+        noise floor's (``rough_map.psd._noise.noise_reach``): the band where the ground,
+        not the sensor, dominates. Above it the ordinates still enter the fit with small
+        weights. 0 where the noise dominates from the first ordinate of the fit on; NaN
+        when no floor was subtracted.
     """
 
     R: float
@@ -90,6 +96,7 @@ class PatchRoughness:
     method: str
     omega0: float
     lateral_scale: float = math.nan
+    omega_noise: float = math.nan
 
     @property
     def sigma_lnR(self) -> float:
@@ -113,4 +120,5 @@ class PatchRoughness:
             "noise_psd": self.noise_psd,
             "method": self.method,
             "lateral_scale": self.lateral_scale,
+            "omega_noise": self.omega_noise,
         }
