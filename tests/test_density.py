@@ -21,13 +21,14 @@ from surfaces import Field, power_law_field, sample_spline, spline_coefficients
 from test_real_data import _texture_scan
 
 from rough_map.errors import InputError, PatchError
-from rough_map.features import cloud_roughness
+from rough_map.features import cloud_roughness, frame_features
 from rough_map.patch import (
     Extraction,
     PatchSpec,
     auto_spacing,
     grid_points,
     points_in_patch,
+    pooled_rows,
     spacing_ladder,
 )
 from rough_map.psd import patch_roughness
@@ -379,14 +380,14 @@ CAPTIF_STARTS = (0.10, 0.25, 0.40, 0.55, 0.70, 0.85)
 
 @cache
 def captif_readings(per_cell: float) -> np.ndarray:
-    """(ln R, w, spacing in m) of the scan's patches at ``per_cell`` points per 8 mm cell,
-    spacing auto; 4 samplings of each of 6 patches."""
+    """(ln R, w, spacing and row width in m) of the scan's patches at ``per_cell`` points
+    per 8 mm cell, spacing auto; 4 samplings of each of 6 patches."""
     out = []
     for start in CAPTIF_STARTS:
         for seed in range(4):
             pts = captif_cloud(start, per_cell, seed=100 * seed + int(10 * per_cell))
             grid, r = _read(pts, auto=True)
-            out.append((math.log(r.R), r.w, grid.spec.spacing))
+            out.append((math.log(r.R), r.w, grid.spec.spacing, grid.spec.row_step))
     return np.array(out)
 
 
@@ -449,3 +450,112 @@ def test_features_of_a_sparse_traverse_choose_one_coarser_grid(tmp_path):
         text=True,
     )
     assert json.loads(fixed.stdout)["spacing_m"] == pytest.approx(0.008)
+
+
+# --------------------------------------- pooled rows: sparse clouds over ground alike across
+
+
+def captif_exact_8mm() -> np.ndarray:
+    """(ln R, w) of the CAPTIF patches read exactly on the 8 mm grid (``test_lateral``)."""
+    from test_lateral import captif_exact
+
+    return captif_exact()
+
+
+@pytest.mark.parametrize("per_cell", [2, 1, 0.5])
+def test_sparse_captif_clouds_keep_the_8_mm_band_in_pooled_rows(per_cell):
+    """Real chipseal swept across the patch, at lidar densities: ``--spacing auto`` reads
+    its lateral scale as 0, keeps the 8 mm step (and the band to 393 rad/m) and widens the
+    cells across the track instead of coarsening the grid. R and w then stay within 25 %
+    and 0.1 of the exact 8 mm scan (median differences) and of the dense clouds' reading,
+    where the coarser square grids read -0.52 and -0.77 in ln R at 1 and 0.5 points per
+    cell (the band alone costs that: ``test_lateral.py::
+    test_captif_readings_depend_on_the_band``)."""
+    ref, dense = captif_exact_8mm(), captif_readings(50)
+    got = captif_readings(per_cell)
+    assert np.median(got[:, 2]) == SPEC.spacing  # the step asked for, on most patches
+    lnr = got[:, 0] - np.repeat(ref[:, 0], 4)
+    dw = got[:, 1] - np.repeat(ref[:, 1], 4)
+    assert abs(np.median(lnr)) <= math.log(1.25) and abs(np.median(dw)) <= 0.1, (lnr, dw)
+    assert abs(np.median(got[:, 0] - dense[:, 0])) <= math.log(1.25)
+    assert abs(np.median(got[:, 1] - dense[:, 1])) <= 0.1
+
+
+def test_pooled_rows_are_logged_and_reported(caplog):
+    """The widened rows are said (log) and kept in the grid's spec; the lateral scale is
+    reported per step along the profiles."""
+    pts = captif_cloud(CAPTIF_STARTS[1], 1.0, seed=7)
+    with caplog.at_level("INFO", logger="rough_map.features"):
+        grid, r = _read(pts, auto=True)
+    assert grid.spec.spacing == SPEC.spacing
+    assert grid.spec.row_step == pytest.approx(0.032)
+    assert grid.heights.shape == (28, 112) and r.n_profiles <= 28
+    assert r.omega[-1] == pytest.approx(math.pi / SPEC.spacing)  # the 8 mm band
+    assert r.lateral_scale < 0.1
+    assert "rows pooled" in caplog.text and "32.0 mm wide" in caplog.text
+
+
+@pytest.mark.parametrize("per_cell", [1, 0.5])
+def test_isotropic_sparse_clouds_are_not_pooled(per_cell):
+    """Isotropic ground reads a lateral scale near 1 (0.8-1.3 on these clouds): widened
+    rows would average away the band, so auto spacing keeps coarsening square cells."""
+    for i, (field, off) in enumerate(SPARSE[::8]):
+        pts = cloud(-2.4, off, per_cell, seed=1000 * i + int(10 * per_cell), field=field)
+        grid, r = _read(pts, auto=True)
+        assert grid.spec.row_spacing is None and grid.spec.spacing > SPEC.spacing
+        assert r.lateral_scale > 0.6
+
+
+@pytest.mark.parametrize("k", [2, 4])
+def test_wide_rows_read_isotropic_ground_like_the_exact_patch(k):
+    """Known answer for the lateral model: rows k cells wide over isotropic ground show its
+    lateral scale times k, which the cell-mean correction takes, and the scale is reported
+    per step: about 1. R and w stay near the exact patch (12 points per 8 mm cell)."""
+    out = []
+    ex = Extraction(use_imu=False, patch=PatchSpec(row_spacing=k * SPEC.spacing))
+    for i, off in enumerate(OFFSETS[:8]):
+        _, r = cloud_roughness(cloud(-2.4, off, 12, seed=i), ex)
+        ref = exact(-2.4, off)
+        out.append((r.lateral_scale, math.log(r.R / ref.R), r.w - ref.w))
+    a, lnr, dw = np.median(out, axis=0)
+    assert 0.8 <= a <= 1.4, out
+    assert abs(lnr) <= 0.1 and abs(dw) <= 0.05, out
+
+
+@pytest.mark.parametrize(
+    ("n_points", "scale", "row_step"),
+    [
+        (12544 * 1.9, 0.0, 0.016),  # 1.9 points per 8 mm cell: rows 2 cells wide
+        (12544 * 0.95, 0.0, 0.032),
+        (12544 * 0.47, 0.02, 0.064),
+        (12544 * 0.15, 0.0, 0.128),  # at most 16 cells wide
+        (12544 * 0.1, 0.0, None),  # 16 cells wide would hold under 1.9 points
+        (12544 * 1.0, 0.2, 0.016),  # 4 x 0.2 > 0.5: narrower rows
+        (12544 * 3.0, 0.0, None),  # dense enough
+        (12544 * 0.95, 1.0, None),  # isotropic
+        (12544 * 0.47, 0.1, None),  # 4 cells wide would hold under 1.9 points
+        (12544 * 0.95, math.nan, None),  # not read
+    ],
+)
+def test_pooled_rows_width(n_points, scale, row_step):
+    got = pooled_rows(int(n_points), SPEC, scale)
+    if row_step is None:
+        assert got is None
+    else:
+        assert got is not None and got.row_step == pytest.approx(row_step)
+        assert (got.spacing, got.n, got.ahead) == (SPEC.spacing, SPEC.n, SPEC.ahead)
+        assert got.rows * got.row_step == pytest.approx(SPEC.n * SPEC.spacing)
+
+
+def test_frames_on_wide_rows_measure_both_directions():
+    """The traverse path (``frame_features``) measures wide rows along the track with the
+    step and across it with the row width, and agrees with ``cloud_roughness``."""
+    pts = cloud(-2.4, OFFSETS[1], 4, seed=3)
+    ex = Extraction(use_imu=False, patch=PatchSpec(row_spacing=0.032))
+    row, omega, _ = frame_features(pts, ex, min_points=100)
+    _, r = cloud_roughness(pts, ex)
+    assert row["valid"], row["reason"]
+    assert row["R"] == r.R and row["w"] == r.w
+    assert omega[-1] == pytest.approx(math.pi / 0.008)
+    # across the track: 28 samples of 32 mm, the same isotropic ground
+    assert abs(math.log(row["R_lat"] / r.R)) < 1.0 and abs(row["w_lat"] - r.w) < 0.3

@@ -162,7 +162,7 @@ def density_table(log: Callable[[str], None]) -> str:
         log(f"density: CAPTIF at {per_cell} points per cell")
         got = d.captif_readings(per_cell)
         rows.append(
-            f"| CAPTIF, {per_cell:g} | {np.median(got[:, 2]) * 1e3:.1f} mm | "
+            f"| CAPTIF, {per_cell:g} | {_grid(got)} | "
             f"{np.median(got[:, 0] - ref[:, 0]):+.2f} (vs 50 points per cell) | "
             f"{np.median(got[:, 1] - ref[:, 1]):+.2f} | "
             f"{np.median(np.abs(got[:, 0] - ref[:, 0])):.2f} |"
@@ -181,10 +181,10 @@ def _captif_exact_rows(log: Callable[[str], None]) -> list[str]:
     exact = lat.captif_exact()
     ref = np.repeat(exact, len(d.captif_readings(50)) // len(exact), axis=0)
 
-    def row(label: str, step: float, got: np.ndarray, against: np.ndarray) -> str:
+    def row(label: str, grid: str, got: np.ndarray, against: np.ndarray) -> str:
         diff = got[:, :2] - against
         return (
-            f"| {label} | {step * 1e3:.1f} mm | "
+            f"| {label} | {grid} | "
             f"{np.median(diff[:, 0]):+.2f} (vs the exact 8 mm scan) | "
             f"{np.median(diff[:, 1]):+.2f} | {np.median(np.abs(diff[:, 0])):.2f} |"
         )
@@ -193,13 +193,29 @@ def _captif_exact_rows(log: Callable[[str], None]) -> list[str]:
     for per_cell in (50, 12, 4, 2, 1, 0.5):
         log(f"density: CAPTIF at {per_cell} points per cell against the exact scan")
         got = d.captif_readings(per_cell)
-        rows.append(row(f"CAPTIF, {per_cell:g}", float(np.median(got[:, 2])), got, ref))
+        rows.append(row(f"CAPTIF, {per_cell:g}", _grid(got), got, ref))
     for spec in d.spacing_ladder(d.SPEC)[1:4]:
         log(f"density: the CAPTIF scan exactly on the {spec.spacing * 1e3:.1f} mm grid")
         rows.append(
-            row("CAPTIF exact (the band alone)", spec.spacing, lat.captif_exact(spec), exact)
+            row(
+                "CAPTIF exact (the band alone)",
+                f"{spec.spacing * 1e3:.1f} mm",
+                lat.captif_exact(spec),
+                exact,
+            )
         )
     return rows
+
+
+def _grid(readings: object) -> str:
+    """The grid most of the CAPTIF readings (``test_density.captif_readings``) took: the
+    step, and the width of the rows where they were pooled."""
+    import numpy as np
+
+    got = np.asarray(readings)
+    step, width = float(np.median(got[:, 2])), float(np.median(got[:, 3]))
+    pooled = f", rows {width * 1e3:.0f} mm wide" if width > step else ""
+    return f"{step * 1e3:.1f} mm{pooled}"
 
 
 TABLES: dict[str, Callable[[Callable[[str], None]], str]] = {

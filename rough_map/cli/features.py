@@ -19,7 +19,7 @@ from rough_map.cli._common import (
     patch_spec,
     table,
 )
-from rough_map.patch import Extraction
+from rough_map.patch import Extraction, PatchSpec
 
 if TYPE_CHECKING:
     from rough_map.psd import PatchRoughness
@@ -126,6 +126,7 @@ def run_cloud(args: argparse.Namespace) -> int:
         "noise_psd": grid.noise_psd,
         "noise_subtracted": rough.noise_subtracted,
         "spacing": spec.spacing,
+        "row_spacing": spec.row_step,
         "size": spec.n * spec.spacing,
         "ahead": spec.ahead,
         "band_rad_per_m": [float(rough.omega[0]), float(rough.omega[-1])],
@@ -140,7 +141,7 @@ def run_cloud(args: argparse.Namespace) -> int:
         [
             "patch",
             f"{spec.n * spec.spacing:.3f} m square, {spec.ahead:.3f} m ahead, "
-            f"{spec.spacing * 1e3:g} mm grid ({spec.n} x {spec.n}), "
+            f"{_grid_text(spec)}, "
             f"{grid.fill_fraction:.0%} of cells filled, "
             f"{grid.points_per_cell:.1f} points per cell ({grid.gridding})",
         ],
@@ -167,6 +168,16 @@ def run_cloud(args: argparse.Namespace) -> int:
     ]
     print(table(rows))
     return 0
+
+
+def _grid_text(spec: PatchSpec) -> str:
+    """The grid of the patch: its step, and its rows when they are wider than the step."""
+    if spec.row_spacing is None:
+        return f"{spec.spacing * 1e3:g} mm grid ({spec.n} x {spec.n})"
+    return (
+        f"{spec.spacing * 1e3:g} mm grid in rows {spec.row_step * 1e3:g} mm wide "
+        f"({spec.rows} x {spec.n}: the ground is alike across the track)"
+    )
 
 
 def _reach(rough: PatchRoughness) -> str:

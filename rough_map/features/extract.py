@@ -18,6 +18,7 @@ use, the estimator and its noise floor), as a terrain model records it.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections.abc import Sequence
@@ -33,7 +34,14 @@ from rough_map.features.table import (
     TEXT_COLUMNS,
     FeatureTable,
 )
-from rough_map.patch import Extraction, GriddedPatch, PatchSpec, grid_points, points_in_patch
+from rough_map.patch import (
+    Extraction,
+    GriddedPatch,
+    PatchSpec,
+    grid_points,
+    points_in_patch,
+    pooled_rows,
+)
 from rough_map.patch._params import check_int, check_real
 from rough_map.psd import PatchRoughness, patch_roughness, patch_roughness_each
 
@@ -165,24 +173,38 @@ def measure_frames(frames: Sequence[GriddedFrame]) -> list[FrameResult]:
             results[i] = (row, None, None)
             continue
         opts = _options(grid, ex)
-        key = (ex.patch.spacing, grid.heights.shape, *opts.values())
+        key = (ex.patch.spacing, ex.patch.row_step, grid.heights.shape, *opts.values())
         groups.setdefault(key, []).append((i, grid))
-    for (spacing, _, method, subtract, gridding), group in groups.items():
+    for (spacing, row_step, _, method, subtract, gridding), group in groups.items():
+        opts = {"method": method, "subtract_noise": subtract, "gridding": gridding}
         for start in range(0, len(group), MEASURE_BATCH):
             members = group[start : start + MEASURE_BATCH]
-            # each frame's profiles along the direction of travel (rows), then across it
-            stack = np.stack([h for _, g in members for h in (g.heights, g.heights.T)])
-            floors = np.repeat([g.noise_psd for _, g in members], 2)
-            outcomes = patch_roughness_each(
-                stack,
-                spacing,
-                method=method,
-                noise_psd=floors if subtract else None,
-                subtract_noise=subtract,
-                gridding=gridding,
-            )
+            floors = np.array([g.noise_psd for _, g in members])
+            if row_step == spacing:
+                # each frame's profiles along the direction of travel (rows), then across it
+                stack = np.stack([h for _, g in members for h in (g.heights, g.heights.T)])
+                floors = np.repeat(floors, 2)
+                both = patch_roughness_each(
+                    stack, spacing, noise_psd=floors if subtract else None, **opts
+                )
+                lon, lat = both[0::2], both[1::2]
+            else:  # rows wider than the step: the two directions have their own steps
+                lon = patch_roughness_each(
+                    np.stack([g.heights for _, g in members]),
+                    spacing,
+                    noise_psd=floors if subtract else None,
+                    row_spacing=row_step,
+                    **opts,
+                )
+                lat = patch_roughness_each(
+                    np.stack([g.heights.T for _, g in members]),
+                    row_step,
+                    noise_psd=floors * (row_step / spacing) if subtract else None,
+                    row_spacing=spacing,
+                    **opts,
+                )
             for k, (i, _) in enumerate(members):
-                results[i] = _measured(frames[i].row, outcomes[2 * k], outcomes[2 * k + 1])
+                results[i] = _measured(frames[i].row, lon[k], lat[k])
     return [r for r in results if r is not None]
 
 
@@ -238,7 +260,10 @@ def cloud_roughness(
         The cloud in the vehicle frame, m.
     extraction : Extraction or PatchSpec, optional
         Patch and estimator options; default the paper's. With ``auto_spacing`` the grid
-        step is chosen for this cloud's density (the returned grid's ``spec`` says which).
+        step is chosen for this cloud's density (:func:`rough_map.patch.auto_spacing`);
+        a sparse cloud over ground that is the same across the track keeps the step and
+        is gridded in wider rows instead (:func:`rough_map.patch.pooled_rows`). The
+        returned grid's ``spec`` says which.
     roll, pitch : float, optional
         Vehicle attitude in rad to compensate (paper Eq. 11); None: no compensation.
     min_points : int
@@ -249,9 +274,29 @@ def cloud_roughness(
     RoughMapError
         Too few points in the patch, or a patch the estimator refuses.
     """
-    ex = _as_extraction(extraction)
-    ex = ex.resolve(points_in_patch(points, ex.patch)) if ex.auto_spacing else ex
+    asked = _as_extraction(extraction)
+    if not asked.auto_spacing:
+        grid = grid_points(points, asked.patch, roll=roll, pitch=pitch, min_points=min_points)
+        return grid, _fit(grid, asked, grid.heights)
+    n_in = points_in_patch(points, asked.patch)
+    ex = asked.resolve(n_in)
     grid = grid_points(points, ex.patch, roll=roll, pitch=pitch, min_points=min_points)
+    rough = _fit(grid, ex, grid.heights)
+    wide = pooled_rows(n_in, asked.patch, rough.lateral_scale)
+    if wide is None:
+        return grid, rough
+    log.info(
+        "rows pooled: lateral scale %.2f, %.1f mm step with rows %.1f mm wide "
+        "(%.2f points per cell); band %.1f to %.1f rad/m",
+        rough.lateral_scale,
+        wide.spacing * 1e3,
+        wide.row_step * 1e3,
+        n_in / (wide.n * wide.rows),
+        2 * math.pi / (wide.n * wide.spacing),
+        math.pi / wide.spacing,
+    )
+    ex = dataclasses.replace(ex, patch=wide)
+    grid = grid_points(points, wide, roll=roll, pitch=pitch, min_points=min_points)
     return grid, _fit(grid, ex, grid.heights)
 
 
@@ -283,7 +328,10 @@ def _fit(grid: GriddedPatch, ex: Extraction, heights: np.ndarray) -> PatchRoughn
     """:func:`rough_map.psd.patch_roughness` of a gridded patch's rows (``heights``)."""
     opts = _options(grid, ex)
     floor = grid.noise_psd if opts["subtract_noise"] else None
-    rough = patch_roughness(heights, ex.patch.spacing, noise_psd=floor, **opts)
+    spec = ex.patch
+    rough = patch_roughness(
+        heights, spec.spacing, noise_psd=floor, row_spacing=spec.row_spacing, **opts
+    )
     assert isinstance(rough, PatchRoughness)  # one patch, one estimate
     return rough
 

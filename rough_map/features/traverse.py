@@ -18,8 +18,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rough_map._files import PathLike
-from rough_map.errors import InputError, PatchError
-from rough_map.features.extract import feature_table
+from rough_map.errors import InputError, PatchError, RoughMapError
+from rough_map.features.extract import cloud_roughness, feature_table
 from rough_map.features.files import read_features
 from rough_map.features.frames import (
     SOURCES,
@@ -34,7 +34,7 @@ from rough_map.features.frames import (
 from rough_map.features.table import FeatureTable
 from rough_map.io.model_files import card_extraction
 from rough_map.io.traverse import Traverse, load_traverse
-from rough_map.patch import Extraction, points_in_patch
+from rough_map.patch import Extraction, points_in_patch, pooled_rows
 
 log = logging.getLogger(__name__)
 
@@ -194,7 +194,9 @@ def resolve_spacing(traverse: Traverse, settings: FramePass) -> Extraction:
     The median number of points over the patch of up to :data:`SPACING_SAMPLES` frames
     (:data:`STEREO_SPACING_SAMPLES` stereo pairs) spread along the traverse chooses it
     (:func:`rough_map.patch.auto_spacing`), so that
-    every row of the features table has the same wavenumbers. The spacing asked for is kept
+    every row of the features table has the same wavenumbers. When they are sparse and
+    their ground is the same across the track, the step asked for is kept with wider rows
+    (:func:`rough_map.patch.pooled_rows`). The spacing asked for is kept
     when no sampled frame has points, or when they are too sparse for any step (the frames
     are then marked invalid, each saying why).
     """
@@ -205,28 +207,51 @@ def resolve_spacing(traverse: Traverse, settings: FramePass) -> Extraction:
     )
     samples = STEREO_SPACING_SAMPLES if stereo else SPACING_SAMPLES
     picks = sorted({round(i) for i in np.linspace(0, len(jobs) - 1, samples)})
-    counts = []
+    counts, clouds = [], []
     for i in picks if jobs else []:
         points, _ = read_points(jobs[i], settings)
         if points is not None:
             counts.append(points_in_patch(points, ex.patch))
+            clouds.append(points)
     fixed = dataclasses.replace(ex, auto_spacing=False)
     if not counts:
         return fixed
+    median = int(np.median(counts))
     try:
-        chosen = ex.resolve(int(np.median(counts)))
+        chosen = ex.resolve(median)
     except PatchError as exc:
         log.warning("%s: %s; keeping the %g mm grid", traverse.name, exc, ex.patch.spacing * 1e3)
         return fixed
+    pooled = _pooled(clouds, median, ex, chosen)
     log.info(
-        "%s: %.1f mm grid, %.2f points per %.1f mm cell (median of %d frames)",
+        "%s: %.1f mm grid%s, %.2f points per %.1f mm cell (median of %d frames)",
         traverse.name,
-        chosen.patch.spacing * 1e3,
-        float(np.median(counts)) / ex.patch.n**2,
+        (pooled or chosen).patch.spacing * 1e3,
+        "" if pooled is None else f" in rows {pooled.patch.row_step * 1e3:.1f} mm wide",
+        median / ex.patch.n**2,
         ex.patch.spacing * 1e3,
         len(counts),
     )
-    return chosen
+    return pooled or chosen
+
+
+def _pooled(
+    clouds: list[NDArray[np.float64]], median: int, asked: Extraction, chosen: Extraction
+) -> Extraction | None:
+    """The extraction with pooled rows (:func:`rough_map.patch.pooled_rows`) when the
+    sampled frames are sparse and their ground, read on the ``chosen`` grid, is the same
+    across the track (the median of their lateral scales); else None."""
+    if pooled_rows(median, asked.patch, 0.0) is None:
+        return None  # dense enough: not worth reading the frames
+    scales = []
+    for points in clouds:
+        try:
+            scales.append(cloud_roughness(points, chosen)[1].lateral_scale)
+        except RoughMapError:
+            continue
+    scale = float(np.nanmedian(scales)) if np.isfinite(scales).any() else float("nan")
+    wide = pooled_rows(median, asked.patch, scale)
+    return None if wide is None else dataclasses.replace(chosen, patch=wide)
 
 
 class FeatureCollector:

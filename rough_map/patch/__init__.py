@@ -14,7 +14,8 @@ optional.
 
 Sparse clouds: :func:`auto_spacing` chooses a coarser step of :func:`spacing_ladder` over
 the same square when the cloud has too few points per cell (``Extraction(auto_spacing=True)``,
-``--spacing auto``).
+``--spacing auto``); over ground that is the same across the track, :func:`pooled_rows`
+keeps the step and widens the cells across it instead.
 
 Layout: :mod:`rough_map.patch.spec` (:class:`PatchSpec`, the grid steps, :class:`Extraction`)
 and :mod:`rough_map.patch.grid` (:func:`grid_points`, :class:`GriddedPatch`).
@@ -29,10 +30,12 @@ from rough_map.patch.spec import (
     DEFAULT_SPACING,
     METHODS,
     MIN_POINTS_PER_CELL,
+    POOLED_POINTS_PER_CELL,
     Extraction,
     PatchSpec,
     auto_spacing,
     points_in_patch,
+    pooled_rows,
     spacing_ladder,
 )
 
@@ -43,6 +46,7 @@ __all__ = [
     "DEFAULT_SPACING",
     "METHODS",
     "MIN_POINTS_PER_CELL",
+    "POOLED_POINTS_PER_CELL",
     "Extraction",
     "GriddedPatch",
     "PatchSpec",
@@ -52,5 +56,6 @@ __all__ = [
     "extract_patch",
     "grid_points",
     "points_in_patch",
+    "pooled_rows",
     "spacing_ladder",
 ]

@@ -31,9 +31,10 @@ class GriddedPatch:
 
     Attributes
     ----------
-    heights : ndarray, shape (n, n)
-        Mean z in m per cell; NaN where no point fell. Rows are longitudinal profiles.
-    counts : ndarray of int, shape (n, n)
+    heights : ndarray, shape (rows, n)
+        Mean z in m per cell; NaN where no point fell. Rows are longitudinal profiles
+        (``spec.rows`` of them, ``spec.row_step`` apart; ``spec.n`` samples each).
+    counts : ndarray of int, shape (rows, n)
         Points per cell.
     spec : PatchSpec
         The patch geometry.
@@ -208,9 +209,9 @@ def _plane_sums(
     the patch (neither lstsq on the points nor a BLAS product of the (N, 3) design matrix:
     both far slower for three columns), and how many points they hold."""
     x, y, z = transform_columns(q, rot) if rot is not None else (q[:, 0], q[:, 1], q[:, 2])
-    half = 0.5 * spec.n * spec.spacing
     dx, dy = x - spec.ahead, y - spec.lateral
-    ok = (np.abs(dx) < half) & (np.abs(dy) < half) & np.isfinite(z)
+    ok = (np.abs(dx) < 0.5 * spec.n * spec.spacing) & (np.abs(dy) < 0.5 * spec.rows * spec.row_step)
+    ok &= np.isfinite(z)
     count = int(ok.sum())
     if count < 10:
         return (), count
@@ -230,11 +231,12 @@ def _plane_sums(
 
 def _grid(pts, spec, rot, offset, min_points, estimate_noise) -> GriddedPatch:
     """One pass over the points: cell counts, means, centroid correction, noise."""
-    n = spec.n
+    n, m = spec.n, spec.rows
     width = n + 2  # one border cell on each side collects everything outside
-    inv = 1.0 / spec.spacing
+    cells = width * (m + 2)
+    inv, inv_y = 1.0 / spec.spacing, 1.0 / spec.row_step
     cx = spec.x0 * inv - 1.0
-    cy = spec.y0 * inv - 1.0
+    cy = spec.y0 * inv_y - 1.0
     sample = pts[:: max(1, len(pts) // 2000), 2]
     sample = sample[np.isfinite(sample)]
     if sample.size == 0:
@@ -242,11 +244,11 @@ def _grid(pts, spec, rot, offset, min_points, estimate_noise) -> GriddedPatch:
             raise InputError(f"points: all {len(pts)} points have NaN or infinite values")
         sample = pts[np.isfinite(pts).all(axis=1), 2]
     zref = median(sample)
-    cnt = np.zeros(width * width, dtype=np.intp)
-    sz = np.zeros(width * width)
-    su = np.zeros(width * width)  # sums of the in-cell offsets, for the centroids
-    sv = np.zeros(width * width)
-    stride, noise_cell = _noise_plan(len(pts), n, estimate_noise)
+    cnt = np.zeros(cells, dtype=np.intp)
+    sz = np.zeros(cells)
+    su = np.zeros(cells)  # sums of the in-cell offsets, for the centroids
+    sv = np.zeros(cells)
+    stride, noise_cell = _noise_plan(len(pts), n, m, estimate_noise)
     moments: list[np.ndarray] = []  # the noise cells' sums of zz, zu, zv, uu, vv, uv
     n_bad = 0
     for s in range(0, len(pts), _CHUNK):
@@ -258,9 +260,9 @@ def _grid(pts, spec, rot, offset, min_points, estimate_noise) -> GriddedPatch:
         u = np.multiply(x, inv)
         u -= cx
         np.fmin(np.fmax(u, 0.0, out=u), n + 1, out=u)  # NaN -> border cell
-        v = np.multiply(y, inv)
+        v = np.multiply(y, inv_y)
         v -= cy
-        np.fmin(np.fmax(v, 0.0, out=v), n + 1, out=v)
+        np.fmin(np.fmax(v, 0.0, out=v), m + 1, out=v)
         iu = u.astype(np.intp)
         iv = v.astype(np.intp)
         u -= iu
@@ -274,31 +276,32 @@ def _grid(pts, spec, rot, offset, min_points, estimate_noise) -> GriddedPatch:
             n_bad += int(bad.sum())
             cell[bad] = 0
             z[bad] = 0.0
-        cnt += np.bincount(cell, minlength=width * width)
-        sz += np.bincount(cell, z, minlength=width * width)
-        su += np.bincount(cell, u, minlength=width * width)
-        sv += np.bincount(cell, v, minlength=width * width)
+        cnt += np.bincount(cell, minlength=cells)
+        sz += np.bincount(cell, z, minlength=cells)
+        su += np.bincount(cell, u, minlength=cells)
+        sv += np.bincount(cell, v, minlength=cells)
         if noise_cell is not None:
-            moments = _add_moments(moments, noise_cell, cell, (z, u, v), n, stride)
+            moments = _add_moments(moments, noise_cell, cell, (z, u, v), n, m, stride)
     if n_bad:
         log.debug("ignored %d points with non-finite z", n_bad)
     inner = (slice(1, -1), slice(1, -1))
-    counts = cnt.reshape(width, width)[inner]
+    shape = (m + 2, width)
+    counts = cnt.reshape(shape)[inner]
     n_in = int(counts.sum())
     if n_in < min_points:
         raise PatchError(
             f"only {n_in} of {len(pts)} points fall in the patch "
             f"x in [{spec.x0:.3f}, {spec.x0 + n * spec.spacing:.3f}] m, "
-            f"y in [{spec.y0:.3f}, {spec.y0 + n * spec.spacing:.3f}] m (need {min_points}); "
+            f"y in [{spec.y0:.3f}, {spec.y0 + m * spec.row_step:.3f}] m (need {min_points}); "
             "is the cloud in the vehicle frame (x forward, y left, z up, metres)?"
         )
     with np.errstate(invalid="ignore", divide="ignore"):
-        mean = sz.reshape(width, width)[inner] / counts
+        mean = sz.reshape(shape)[inner] / counts
         # The points of a cell do not average to its centre: refer each mean to the centre
         # with the local gradient, so slopes do not turn point positions into height noise.
-        du = (su.reshape(width, width)[inner] / counts - 0.5) * spec.spacing
-        dv = (sv.reshape(width, width)[inner] / counts - 0.5) * spec.spacing
-        gx, gy = _gradient(mean, spec.spacing)
+        du = (su.reshape(shape)[inner] / counts - 0.5) * spec.spacing
+        dv = (sv.reshape(shape)[inner] / counts - 0.5) * spec.row_step
+        gx, gy = _gradient(mean, spec.spacing, spec.row_step)
         shift = gx * du
         shift += gy * dv
     used = np.isfinite(shift)  # empty cells, and cells without a neighbour, keep their mean
@@ -311,17 +314,18 @@ def _grid(pts, spec, rot, offset, min_points, estimate_noise) -> GriddedPatch:
     return GriddedPatch(heights, counts, spec, n_in, point_noise, noise_psd)
 
 
-def _gradient(z: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
-    """The gradient of a grid along x (columns) and y (rows): central differences inside,
-    one-sided at the edges (np.gradient's arithmetic, without its overhead)."""
+def _gradient(z: np.ndarray, step: float, row_step: float) -> tuple[np.ndarray, np.ndarray]:
+    """The gradient of a grid along x (columns ``step`` m apart) and y (rows ``row_step``
+    m apart): central differences inside, one-sided at the edges (np.gradient's
+    arithmetic, without its overhead)."""
     gx = np.empty_like(z)
     gy = np.empty_like(z)
     gx[:, 1:-1] = (z[:, 2:] - z[:, :-2]) / (2.0 * step)
     gx[:, 0] = (z[:, 1] - z[:, 0]) / step
     gx[:, -1] = (z[:, -1] - z[:, -2]) / step
-    gy[1:-1] = (z[2:] - z[:-2]) / (2.0 * step)
-    gy[0] = (z[1] - z[0]) / step
-    gy[-1] = (z[-1] - z[-2]) / step
+    gy[1:-1] = (z[2:] - z[:-2]) / (2.0 * row_step)
+    gy[0] = (z[1] - z[0]) / row_step
+    gy[-1] = (z[-1] - z[-2]) / row_step
     return gx, gy
 
 
@@ -336,7 +340,7 @@ def _floor(point_noise: float, counts: np.ndarray, spacing: float) -> float:
 
 
 def _add_moments(
-    moments: list, noise_cell: np.ndarray, cell: np.ndarray, zuv, n: int, stride: int
+    moments: list, noise_cell: np.ndarray, cell: np.ndarray, zuv, n: int, m: int, stride: int
 ) -> list:
     """Add a chunk's sums of zz, zu, zv, uu, vv, uv over the noise cells (the cells of
     every ``stride``-th row, numbered by ``noise_cell``; -1 for the others) to
@@ -352,7 +356,7 @@ def _add_moments(
     pick = np.flatnonzero(sub >= 0)
     sub = sub[pick]
     z, u, v = (a[pick] for a in zuv)
-    size = (n // stride) * n
+    size = (m // stride) * n
     sums = [np.bincount(sub, c, minlength=size) for c in (z * z, z * u, z * v, u * u, v * v, u * v)]
     if not moments:
         return sums
@@ -361,21 +365,25 @@ def _add_moments(
     return moments
 
 
-def _noise_plan(n_points: int, n: int, estimate_noise: bool) -> tuple[int, np.ndarray | None]:
-    """The row stride of the noise cells for a cloud of ``n_points`` on an n x n grid, and
-    the cells' numbers (:func:`_noise_cells`; None without a noise estimate)."""
-    stride = _DENSE_STRIDE if n_points >= _DENSE * n * n else _NOISE_STRIDE
-    return stride, (_noise_cells(n, stride)[0] if estimate_noise else None)
+def _noise_plan(
+    n_points: int, n: int, m: int, estimate_noise: bool
+) -> tuple[int, np.ndarray | None]:
+    """The row stride of the noise cells for a cloud of ``n_points`` on a grid of ``m``
+    rows of ``n`` cells, and the cells' numbers (:func:`_noise_cells`; None without a
+    noise estimate)."""
+    stride = _DENSE_STRIDE if n_points >= _DENSE * n * m else _NOISE_STRIDE
+    return stride, (_noise_cells(n, m, stride)[0] if estimate_noise else None)
 
 
 @functools.lru_cache(maxsize=8)
-def _noise_cells(n: int, stride: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The cells of rows S, 2S, ... (S = ``stride``) of an n x n grid: for each cell of
-    the grid with its border (flat), its number among them or -1; and for each of them,
-    its flat index in the grid with its border and in the grid without."""
+def _noise_cells(n: int, m: int, stride: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The cells of rows S, 2S, ... (S = ``stride``) of a grid of ``m`` rows of ``n``
+    cells: for each cell of the grid with its border (flat), its number among them or -1;
+    and for each of them, its flat index in the grid with its border and in the grid
+    without."""
     width = n + 2
-    index = np.full((width, width), -1, dtype=np.intp)
-    rows = index[stride : n + 1 : stride, 1:-1]
+    index = np.full((m + 2, width), -1, dtype=np.intp)
+    rows = index[stride : m + 1 : stride, 1:-1]
     rows[...] = np.arange(rows.size).reshape(rows.shape)
     r, c = np.divmod(np.flatnonzero(index.ravel() >= 0), width)
     out = (index.ravel(), r * width + c, (r - 1) * n + c - 1)
@@ -397,7 +405,7 @@ def _noise(moments: list, sums: tuple, gradient: tuple, spec: PatchSpec, stride:
     the sum of squared departures about their mean has ``k - 1`` degrees of freedom, so
     it estimates the variance of one departure without a model of what makes it up.
     """
-    _, full, inner = _noise_cells(spec.n, stride)
+    _, full, inner = _noise_cells(spec.n, spec.rows, stride)
     cnt, sz, su, sv = sums
     gx, gy, used = (a.ravel() for a in gradient)
     k = cnt[full]
@@ -410,7 +418,7 @@ def _noise(moments: list, sums: tuple, gradient: tuple, spec: PatchSpec, stride:
     szz, szu, szv, suu, svv, suv = (a[sel] for a in moments)
     use = used[g]
     ax = np.where(use, gx[g], 0.0) * spec.spacing  # the slope in m per cell
-    ay = np.where(use, gy[g], 0.0) * spec.spacing
+    ay = np.where(use, gy[g], 0.0) * spec.row_step
     with np.errstate(invalid="ignore", divide="ignore"):
         mean, ub, vb = sz / k, su / k, sv / k
         ssr = szz - mean * sz

@@ -37,18 +37,35 @@ class PatchSpec:
         Grid step B in m.
     lateral : float
         Offset in m of the patch centre to the left (+y).
+    row_spacing : float or None
+        Width in m of a cell across the direction of travel, and so the distance between
+        neighbouring profiles; None (the default): ``spacing``, square cells. Wider rows
+        pool more points per cell without giving up the band along the profiles: right
+        for ground that is the same across the track over a cell's width
+        (:func:`pooled_rows`).
     """
 
     ahead: float = DEFAULT_AHEAD
     size: float = DEFAULT_SIZE
     spacing: float = DEFAULT_SPACING
     lateral: float = 0.0
+    row_spacing: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("size", "spacing"):
             check_real(name, getattr(self, name), "m", low=0.0, high=1e3, low_open=True)
         for name in ("ahead", "lateral"):
             check_real(name, getattr(self, name), "m", low=-1e3, high=1e3)
+        if self.row_spacing is not None:
+            check_real("row_spacing", self.row_spacing, "m", low=0.0, high=1e3, low_open=True)
+            if float(self.row_spacing) == float(self.spacing):
+                object.__setattr__(self, "row_spacing", None)  # square cells: one spelling
+            elif not 3 <= self.rows <= MAX_SAMPLES:
+                raise InputError(
+                    f"size / row_spacing gives {self.size / self.row_spacing:.6g} profiles "
+                    f"(size={self.size:g} m, row_spacing={self.row_spacing:g} m); need 3 "
+                    f"to {MAX_SAMPLES}"
+                )
         if self.n < 8:
             raise InputError(
                 f"size / spacing gives {self.n} samples per profile; need at least 8 "
@@ -63,8 +80,21 @@ class PatchSpec:
 
     @property
     def n(self) -> int:
-        """Samples per profile and number of profiles."""
+        """Samples per profile (and number of profiles of square cells)."""
         ratio = self.size / self.spacing
+        return int(round(ratio)) if math.isfinite(ratio) else 2**62
+
+    @property
+    def row_step(self) -> float:
+        """Distance in m between neighbouring profiles: ``row_spacing``, or ``spacing``."""
+        return self.spacing if self.row_spacing is None else float(self.row_spacing)
+
+    @property
+    def rows(self) -> int:
+        """Number of profiles (rows of the grid)."""
+        if self.row_spacing is None:
+            return self.n
+        ratio = self.size / self.row_spacing
         return int(round(ratio)) if math.isfinite(ratio) else 2**62
 
     @property
@@ -75,11 +105,11 @@ class PatchSpec:
     @property
     def y0(self) -> float:
         """y in m of the right edge of the patch (vehicle frame)."""
-        return self.lateral - 0.5 * self.n * self.spacing
+        return self.lateral - 0.5 * self.rows * self.row_step
 
     def corners(self) -> np.ndarray:
         """The four corners (x, y) in m in the vehicle frame, counter-clockwise."""
-        x1, y1 = self.x0 + self.n * self.spacing, self.y0 + self.n * self.spacing
+        x1, y1 = self.x0 + self.n * self.spacing, self.y0 + self.rows * self.row_step
         return np.array([[self.x0, self.y0], [x1, self.y0], [x1, y1], [self.x0, y1]])
 
 
@@ -120,9 +150,8 @@ def points_in_patch(points: np.ndarray, spec: PatchSpec) -> int:
     """Points of an N x 3 cloud (vehicle frame, m) over the patch square, without tilt."""
     _check_spec(spec)
     pts = _as_cloud(points)
-    half = 0.5 * spec.n * spec.spacing
-    inside = np.abs(pts[:, 0] - spec.ahead) < half
-    inside &= np.abs(pts[:, 1] - spec.lateral) < half
+    inside = np.abs(pts[:, 0] - spec.ahead) < 0.5 * spec.n * spec.spacing
+    inside &= np.abs(pts[:, 1] - spec.lateral) < 0.5 * spec.rows * spec.row_step
     return int(np.count_nonzero(inside))
 
 
@@ -195,6 +224,67 @@ def auto_spacing(
     )
 
 
+#: Points per cell, on average, that :func:`pooled_rows` widens the rows to hold: on the
+#: CAPTIF chipseal swept across the patch, 2, 1 and 0.5 points per 8 mm cell read nearest
+#: the exact 8 mm scan with rows 2, 4 and 8 cells wide (``tests/test_density.py``).
+POOLED_POINTS_PER_CELL = 4.0
+#: Widest pooled rows, in steps along the profile.
+MAX_ROW_FACTOR = 16
+#: Largest lateral scale of the widened rows (the ground's times their factor): rows stay
+#: nearly alike across their width, so their lateral box takes little of the band.
+MAX_POOLED_SCALE = 0.5
+
+
+def pooled_rows(n_points: int, spec: PatchSpec, lateral_scale: float) -> PatchSpec | None:
+    """Rows of cells wider across the track, for a sparse cloud over ground that is the
+    same across it, or None.
+
+    Ground such as a rut, a swept texture or a road scanned along one line changes little
+    across the track: its lateral scale ``a`` (:attr:`rough_map.psd.PatchRoughness.
+    lateral_scale`, 0 for ground the same at every y, 1 for isotropic ground) is small.
+    Averaging its points over a cell ``k`` times wider than long then loses little of the
+    band along the profiles, and the estimator corrects for what it loses (the lateral box
+    of a stretched surface, :mod:`rough_map.psd._lateral`). So a cloud too sparse for the
+    step ``spec.spacing`` keeps that step, and with it the band up to ``pi / B``, instead
+    of the coarser square grid of :func:`auto_spacing`, whose band ends lower.
+
+    Parameters
+    ----------
+    n_points : int
+        Points over the patch square (:func:`points_in_patch`).
+    spec : PatchSpec
+        The patch with square cells and the step asked for.
+    lateral_scale : float
+        The ground's lateral scale read on the cloud (dimensionless; NaN: not read).
+
+    Returns
+    -------
+    PatchSpec or None
+        ``spec`` with ``row_spacing`` ``k`` times its step: the power of two ``k`` that
+        puts nearest :data:`POOLED_POINTS_PER_CELL` points in a cell (at most
+        :data:`MAX_ROW_FACTOR`; 1, no pooling, from 2.8 points per cell up), as long as
+        ``k * lateral_scale`` stays within :data:`MAX_POOLED_SCALE` and the cells get at
+        least :data:`MIN_POINTS_PER_CELL`. None when the cloud is dense enough, the ground is
+        not alike across the track, or the scale was not read.
+    """
+    _check_spec(spec)
+    check_int("n_points", n_points, low=0, high=2**62, unit="points")
+    density = n_points / (spec.n * spec.rows)
+    a = float(lateral_scale)
+    if spec.row_spacing is not None or density <= 0 or not math.isfinite(a):
+        return None
+    # the power of two nearest (in ratio) to POOLED_POINTS_PER_CELL points per cell
+    k = 2 ** round(math.log2(POOLED_POINTS_PER_CELL / density))
+    k = min(k, MAX_ROW_FACTOR)
+    while k >= 2 and k * max(a, 0.0) > MAX_POOLED_SCALE:
+        k //= 2
+    rows = int(round(spec.n / k)) if k >= 2 else spec.n
+    if k < 2 or rows < 3 or n_points / (spec.n * rows) < MIN_POINTS_PER_CELL:
+        return None
+    extent = spec.n * spec.spacing
+    return dataclasses.replace(spec, size=extent, row_spacing=extent / rows)
+
+
 #: Estimators of :func:`rough_map.psd.patch_roughness` an :class:`Extraction` may name.
 METHODS = ("unbiased", "paper")
 
@@ -241,8 +331,9 @@ class Extraction:
     def to_dict(self) -> dict[str, Any]:
         """The flat form a model and its card record: ``ahead, size, spacing, lateral`` (m),
         ``use_imu``, ``method``, ``subtract_noise`` (and ``"spacing": "auto"`` when
-        :attr:`auto_spacing`)."""
-        return {
+        :attr:`auto_spacing`, ``row_spacing`` in m when the rows are wider than the
+        step)."""
+        out: dict[str, Any] = {
             "ahead": self.patch.ahead,
             "size": self.patch.size,
             "spacing": "auto" if self.auto_spacing else self.patch.spacing,
@@ -251,6 +342,9 @@ class Extraction:
             "method": self.method,
             "subtract_noise": self.subtract_noise,
         }
+        if self.patch.row_spacing is not None:
+            out["row_spacing"] = self.patch.row_spacing
+        return out
 
     def resolve(self, n_points: int) -> Extraction:
         """The extraction with a fixed step: ``self`` unless :attr:`auto_spacing`, else the
@@ -282,13 +376,15 @@ class Extraction:
             return cls()
         if not isinstance(value, Mapping):
             raise InputError(f"extraction must be a mapping, got {type(value).__name__}")
-        known = {"ahead", "size", "spacing", "lateral", "use_imu", "method", "subtract_noise"}
+        known = {"ahead", "size", "spacing", "lateral", "row_spacing"}
+        known |= {"use_imu", "method", "subtract_noise"}
         unknown = sorted(repr(k)[:30] for k in set(value) - known)
         if unknown:
             raise InputError(
                 f"unknown extraction settings {', '.join(unknown[:3])}; known: {sorted(known)}"
             )
-        geometry = {k: value[k] for k in ("ahead", "size", "spacing", "lateral") if k in value}
+        keys = ("ahead", "size", "spacing", "lateral", "row_spacing")
+        geometry = {k: value[k] for k in keys if k in value}
         options = {k: value[k] for k in ("use_imu", "method", "subtract_noise") if k in value}
         if isinstance(geometry.get("spacing"), str) and geometry["spacing"] == "auto":
             del geometry["spacing"]

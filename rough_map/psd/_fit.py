@@ -84,6 +84,7 @@ def _lateral_correction(
     sx: np.ndarray,
     opt: Options,
     seg_n: int,
+    spacing: float,
 ) -> tuple[np.ndarray | None, np.ndarray]:
     """Per-bin log gain (patches, bins) of each patch's lateral scale over the isotropic
     one that the cell-mean tables assume (:mod:`rough_map.psd._lateral`), at the
@@ -102,7 +103,11 @@ def _lateral_correction(
     usable = np.broadcast_to(pr.mask, mean_psd.shape)
     position = lateral_scale(cross, mean_psd, floor, w, usable, seg_n)
     gain = lateral_log_gain(position, w, seg_n)[:, : mean_psd.shape[1]]
-    return gain, lateral_scale_value(position)
+    # Rows wider and further apart than the step along them show the ground's lateral
+    # scale times their ratio (the family is stretched across): the gain is read at what
+    # the rows show, the scale is reported per step along the profiles.
+    ratio = 1.0 if opt.row_spacing is None else opt.row_spacing / spacing
+    return gain, lateral_scale_value(position) / ratio
 
 
 def fit(
@@ -154,7 +159,9 @@ def fit(
         pr = project(logp, plan)
     # Projections of the per-bin corrections on (centred x, mean).
     sx = (shift * pr.xc).sum(axis=1)
-    lateral, scale = _lateral_correction(spectra, mean_psd, floor_or_zero, pr, sx, opt, seg_n)
+    lateral, scale = _lateral_correction(
+        spectra, mean_psd, floor_or_zero, pr, sx, opt, seg_n, spacing
+    )
     if lateral is not None:
         shift = shift - lateral
         sx = (shift * pr.xc).sum(axis=1)

@@ -29,6 +29,7 @@ class Options:
     min_profiles: int = 3
     gridding: str = "point"
     waviness: float | None = None
+    row_spacing: float | None = None
 
     def __post_init__(self) -> None:
         check_window(self.window)
@@ -46,6 +47,9 @@ class Options:
         check_bool("subtract_noise", self.subtract_noise)
         check_real("max_gap", self.max_gap, "m", low=0.0, high=1e6)
         check_real("max_gap_fraction", self.max_gap_fraction, "", low=0.0, high=1.0)
+        check_real(
+            "row_spacing", self.row_spacing, "m", low=0.0, high=1e3, low_open=True, none=True
+        )
         check_int("min_profiles", self.min_profiles, low=1, high=MAX_CELLS, unit="profiles")
         w = self.waviness
         if w is not None and not (

@@ -51,6 +51,7 @@ def patch_roughness(
     min_profiles: int = 3,
     gridding: str = "point",
     waviness: float | None = None,
+    row_spacing: float | None = None,
 ) -> PatchRoughness:
     """Roughness parameters (R, w) of one patch, with their first-order uncertainty.
 
@@ -93,6 +94,11 @@ def patch_roughness(
     waviness : float, optional
         Fix the waviness (dimensionless) instead of fitting it (ISO 8608 classifies roads
         with w = -2); then only R is estimated and ``sigma_w`` is 0.
+    row_spacing : float, optional
+        Distance in m between neighbouring profiles (the rows of a grid of cells wider
+        across than along, :attr:`rough_map.patch.PatchSpec.row_spacing`); default
+        ``spacing``. It sets the unit of the lateral scale the cell-mean fit reports (the
+        correction itself reads the rows as they are).
 
     Returns
     -------
@@ -118,6 +124,7 @@ def patch_roughness(
         min_profiles=min_profiles,
         gridding=gridding,
         waviness=waviness,
+        row_spacing=row_spacing,
     )
     spacing = check_spacing(spacing)
     opt.check_omega0()
@@ -150,7 +157,7 @@ def patch_roughness_batch(
         The keyword options of :func:`patch_roughness` (``window``, ``method``, ``nperseg``,
         ``noverlap``, ``omega0`` in rad/m, ``noise_psd`` in m^3/rad, ``subtract_noise``,
         ``max_gap`` in m, ``max_gap_fraction``, ``min_profiles``, ``gridding``,
-        ``waviness``).
+        ``waviness``, ``row_spacing`` in m).
 
     Returns
     -------
