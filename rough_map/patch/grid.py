@@ -232,11 +232,10 @@ def _plane_sums(
 def _grid(pts, spec, rot, offset, min_points, estimate_noise) -> GriddedPatch:
     """One pass over the points: cell counts, means, centroid correction, noise."""
     n, m = spec.n, spec.rows
-    width = n + 2  # one border cell on each side collects everything outside
-    cells = width * (m + 2)
+    shape = (m + 2, n + 2)  # one border cell on each side collects everything outside
+    width, cells = n + 2, (m + 2) * (n + 2)
     inv, inv_y = 1.0 / spec.spacing, 1.0 / spec.row_step
-    cx = spec.x0 * inv - 1.0
-    cy = spec.y0 * inv_y - 1.0
+    cx, cy = spec.x0 * inv - 1.0, spec.y0 * inv_y - 1.0
     sample = pts[:: max(1, len(pts) // 2000), 2]
     sample = sample[np.isfinite(sample)]
     if sample.size == 0:
@@ -285,7 +284,6 @@ def _grid(pts, spec, rot, offset, min_points, estimate_noise) -> GriddedPatch:
     if n_bad:
         log.debug("ignored %d points with non-finite z", n_bad)
     inner = (slice(1, -1), slice(1, -1))
-    shape = (m + 2, width)
     counts = cnt.reshape(shape)[inner]
     n_in = int(counts.sum())
     if n_in < min_points:
