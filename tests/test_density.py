@@ -547,6 +547,15 @@ def test_pooled_rows_width(n_points, scale, row_step):
         assert got.rows * got.row_step == pytest.approx(SPEC.n * SPEC.spacing)
 
 
+def test_pooled_rows_refuse_bad_arguments():
+    with pytest.raises(InputError, match="lateral_scale must be a number"):
+        pooled_rows(1000, SPEC, "flat")
+    with pytest.raises(InputError, match="n_points"):
+        pooled_rows(-1, SPEC, 0.0)
+    with pytest.raises(InputError, match="spec must be a PatchSpec"):
+        pooled_rows(1000, "8 mm", 0.0)
+
+
 def test_frames_on_wide_rows_measure_both_directions():
     """The traverse path (``frame_features``) measures wide rows along the track with the
     step and across it with the row width, and agrees with ``cloud_roughness``."""
@@ -559,3 +568,35 @@ def test_frames_on_wide_rows_measure_both_directions():
     assert omega[-1] == pytest.approx(math.pi / 0.008)
     # across the track: 28 samples of 32 mm, the same isotropic ground
     assert abs(math.log(row["R_lat"] / r.R)) < 1.0 and abs(row["w_lat"] - r.w) < 0.3
+
+
+def test_a_sparse_traverse_over_swept_ground_pools_its_rows(tmp_path, caplog):
+    """A traverse of lidar-like clouds (1 point per 8 mm cell) over ground whose profiles
+    are the same across the track (the chipseal, with waves across it that only shift each
+    profile): the frames that choose its step read a small lateral scale, so every frame
+    keeps the 8 mm band in rows 32 mm wide, and reads as the single cloud does."""
+    import json
+
+    from rough_map.features import traverse_features
+
+    def ground(start: float, seed: int) -> np.ndarray:
+        pts = captif_cloud(start, 1.0, seed=seed)
+        y = pts[:, 1]
+        pts[:, 2] += 1e-3 * (np.sin(2 * np.pi * y / 0.31) + np.sin(2 * np.pi * y / 0.13 + 1))
+        return pts
+
+    (tmp_path / "clouds").mkdir()
+    frames = []
+    for i, start in enumerate(CAPTIF_STARTS):
+        np.save(tmp_path / "clouds" / f"{i}.npy", ground(start, i))
+        pose = {"x": 0.25 * i, "y": 0.0, "yaw": 0.0}
+        frames.append({"t": 0.5 * i, "pose": pose, "cloud": f"clouds/{i}.npy"})
+    doc = {"schema_version": "1.0", "name": "swept", "frames": frames}
+    (tmp_path / "traverse.json").write_text(json.dumps(doc))
+    with caplog.at_level("INFO", logger="rough_map.features"):
+        table = traverse_features(tmp_path, Extraction(use_imu=False, auto_spacing=True))
+    assert "8.0 mm grid in rows 32.0 mm wide" in caplog.text
+    assert table.valid.all()
+    assert table.omega[-1] == pytest.approx(math.pi / SPEC.spacing)
+    one = _read(ground(CAPTIF_STARTS[2], 2), auto=True)[1]
+    assert table.columns["R"][2] == pytest.approx(one.R, rel=1e-9)

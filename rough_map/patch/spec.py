@@ -240,8 +240,9 @@ def pooled_rows(n_points: int, spec: PatchSpec, lateral_scale: float) -> PatchSp
     same across it, or None.
 
     Ground such as a rut, a swept texture or a road scanned along one line changes little
-    across the track: its lateral scale ``a`` (:attr:`rough_map.psd.PatchRoughness.
-    lateral_scale`, 0 for ground the same at every y, 1 for isotropic ground) is small.
+    across the track: its lateral scale ``a`` (``PatchRoughness.lateral_scale`` of
+    :mod:`rough_map.psd`: 0 for ground the same at every y, 1 for isotropic ground) is
+    small.
     Averaging its points over a cell ``k`` times wider than long then loses little of the
     band along the profiles, and the estimator corrects for what it loses (the lateral box
     of a stretched surface, :mod:`rough_map.psd._lateral`). So a cloud too sparse for the
@@ -270,7 +271,13 @@ def pooled_rows(n_points: int, spec: PatchSpec, lateral_scale: float) -> PatchSp
     _check_spec(spec)
     check_int("n_points", n_points, low=0, high=2**62, unit="points")
     density = n_points / (spec.n * spec.rows)
-    a = float(lateral_scale)
+    try:
+        a = float(lateral_scale)
+    except (TypeError, ValueError):
+        raise InputError(
+            f"lateral_scale must be a number (dimensionless; NaN: not read), got "
+            f"{lateral_scale!r:.40}"
+        ) from None
     if spec.row_spacing is not None or density <= 0 or not math.isfinite(a):
         return None
     # the power of two nearest (in ratio) to POOLED_POINTS_PER_CELL points per cell
