@@ -145,8 +145,8 @@ def fit(
     if opt.subtract_noise:
         floor, gain = gap_filled_floor(noise, filled, n_bins, seg_n, spacing)
         floor_or_zero = floor
-        reach = noise_reach(mean_psd, floor, plan.mask, spectra.omega)
         shift, weights, short = floor_correction(mean_psd, floor, plan.mask)
+        reach = noise_reach(shift, plan.mask, spectra.omega)
         shift = shift - np.log(gain)
         if short.any():
             return _without(short, spectra, opt, noise, spacing, n, seg_n, n_dropped, filled)

@@ -189,20 +189,17 @@ def floor_correction(
     return shift, np.where(mask, LOG_VAR / var, 0.0), short
 
 
-def noise_reach(
-    mean_psd: np.ndarray, floor: np.ndarray, base_mask: np.ndarray, omega: np.ndarray
-) -> np.ndarray:
+def noise_reach(shift: np.ndarray, base_mask: np.ndarray, omega: np.ndarray) -> np.ndarray:
     """The highest wavenumber in rad/m, counted on from the fit's first ordinate, up to
     which each patch's terrain keeps at least as much power as its floor (the smoothed
-    patch-mean power at least twice the floor, as in :func:`floor_correction`); 0 where the
-    first is already below. Above it the noise dominates and the ordinates weigh little in
-    the fit.
+    patch-mean power at least twice the floor); 0 where the first is already below. Above
+    it the noise dominates and the ordinates weigh little in the fit.
 
-    ``mean_psd`` and ``floor`` (m^3/rad) have shape (patches, bins), ``base_mask`` and
-    ``omega`` (rad/m) shape (bins,).
+    ``shift`` (patches, bins) is :func:`floor_correction`'s ``ln((P - floor) / P)``, which
+    is at least ``ln(1/2)`` exactly there; ``base_mask`` and ``omega`` (rad/m) have shape
+    (bins,).
     """
-    smooth = _smooth_bins(mean_psd, base_mask)
-    above = (smooth >= 2.0 * floor) | ~base_mask[None, :]
+    above = (shift >= math.log(0.5)) | ~base_mask[None, :]
     run = (np.cumprod(above, axis=1) > 0) & base_mask[None, :]
-    last = np.where(run, np.arange(mean_psd.shape[1])[None, :], -1).max(axis=1)
+    last = np.where(run, np.arange(shift.shape[1])[None, :], -1).max(axis=1)
     return np.where(last >= 0, omega[np.maximum(last, 0)], 0.0)
