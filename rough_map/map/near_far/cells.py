@@ -46,7 +46,7 @@ class NearField:
         """The near field of a patch (or of an extraction's patch)."""
         extraction = patch if isinstance(patch, Extraction) else Extraction(patch=patch)
         spec = extraction.patch
-        return cls(extraction.near_range, (spec.y0, spec.y0 + spec.n * spec.spacing))
+        return cls(extraction.near_range, (spec.y0, spec.y0 + spec.rows * spec.row_step))
 
     def contains(self, ahead: NDArray[np.float64], lateral: NDArray[np.float64]) -> NDArray:
         """Whether vehicle-frame points (``ahead``, ``lateral`` in m) lie in the near field
