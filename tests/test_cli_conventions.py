@@ -371,6 +371,12 @@ def test_features_csv_without_its_metadata(small_features, tmp_path: Path, capsy
     sidecar.write_text(json.dumps({**meta, "format_version": 99}))
     with pytest.raises(FileFormatError, match="format_version 99; this rough_map reads up to 1"):
         read_features(path)
+    sidecar.write_text(json.dumps({**meta, "row_spacing_m": -0.032}))
+    with pytest.raises(FileFormatError, match=r"features\.csv\.json \[row_spacing_m\]: must be a "
+                       r"positive width in m"):  # fmt: skip
+        read_features(path)
+    sidecar.write_text(json.dumps({**meta, "row_spacing_m": 0.032}))
+    assert read_features(path).row_spacing == 0.032
     sidecar.write_text("{not json")
     with pytest.raises(FileFormatError, match="invalid JSON at line 1"):
         read_features(path)

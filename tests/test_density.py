@@ -571,14 +571,15 @@ def test_frames_on_wide_rows_measure_both_directions():
     assert abs(math.log(row["R_lat"] / r.R)) < 1.0 and abs(row["w_lat"] - r.w) < 0.3
 
 
-def test_a_sparse_traverse_over_swept_ground_pools_its_rows(tmp_path, caplog):
+def test_a_sparse_traverse_over_swept_ground_pools_its_rows(tmp_path, caplog, capsys):
     """A traverse of lidar-like clouds (1 point per 8 mm cell) over ground whose profiles
     are the same across the track (the chipseal, with waves across it that only shift each
     profile): the frames that choose its step read a small lateral scale, so every frame
     keeps the 8 mm band in rows 32 mm wide, and reads as the single cloud does."""
     import json
 
-    from rough_map.features import traverse_features
+    from rough_map.cli.main import main
+    from rough_map.features import read_features, traverse_features, write_features
 
     def ground(start: float, seed: int) -> np.ndarray:
         pts = captif_cloud(start, 1.0, seed=seed)
@@ -601,3 +602,12 @@ def test_a_sparse_traverse_over_swept_ground_pools_its_rows(tmp_path, caplog):
     assert table.omega[-1] == pytest.approx(math.pi / SPEC.spacing)
     one = _read(ground(CAPTIF_STARTS[2], 2), auto=True)[1]
     assert table.columns["R"][2] == pytest.approx(one.R, rel=1e-9)
+    assert table.row_spacing == pytest.approx(0.032)
+    back = read_features(write_features(table, tmp_path / "f.csv"))
+    assert back.row_spacing == pytest.approx(0.032)
+    square = read_features(write_features(table.replace(name="x"), tmp_path / "g.parquet"))
+    assert square.row_spacing == pytest.approx(0.032)  # replace and Parquet keep it too
+    assert main(["features", str(tmp_path), "--out", str(tmp_path / "h.csv")]) == 0
+    assert "8.0 mm grid in rows 32.0 mm wide (auto), band 7.0 to 392.7" in capsys.readouterr().err
+    assert main(["features", str(tmp_path), "--out", str(tmp_path / "h.csv"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["row_spacing_m"] == pytest.approx(0.032)

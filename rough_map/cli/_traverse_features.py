@@ -47,10 +47,12 @@ def run_traverse(args: argparse.Namespace) -> int:
     omega = np.asarray(feats.omega, dtype=float)
     step = math.pi / omega[-1] if omega.size else math.nan  # the band ends at pi / B
     band = f"{omega[0]:.1f} to {omega[-1]:.1f} rad/m" if omega.size else "none"
+    wide = "" if feats.row_spacing is None else f" in rows {feats.row_spacing * 1e3:.1f} mm wide"
     status(
         args,
         f"wrote {len(feats)} frames ({int((~valid).sum())} invalid) to {args.out}; "
-        f"{step * 1e3:.1f} mm grid{' (auto)' if extraction.auto_spacing else ''}, band {band}",
+        f"{step * 1e3:.1f} mm grid{wide}{' (auto)' if extraction.auto_spacing else ''}, "
+        f"band {band}",
     )
     summary = {lab or "(unlabelled)": s for lab, s in label_summary(feats).items()}
     if args.json:
@@ -60,6 +62,7 @@ def run_traverse(args: argparse.Namespace) -> int:
                 "metadata": None if parquet else str(features_metadata_path(args.out)),
                 "frames": len(feats),
                 "spacing_m": step,
+                "row_spacing_m": feats.row_spacing,
                 "band_rad_per_m": [float(omega[0]), float(omega[-1])] if omega.size else None,
                 "invalid": int((~valid).sum()),
                 "summary": summary,

@@ -351,7 +351,7 @@ def feature_table(
     for i, s in enumerate(spectra):
         if s is not None:
             log_psd[i] = np.log10(s)
-    return FeatureTable(_columns(rows), omega, log_psd, name)
+    return FeatureTable(_columns(rows), omega, log_psd, name, spec.row_spacing)
 
 
 def _columns(rows: list[dict[str, Any]]) -> dict[str, np.ndarray]:

@@ -58,7 +58,8 @@ def features_metadata_path(path: PathLike) -> Path:
 
 def features_metadata(table: FeatureTable) -> dict[str, Any]:
     """The metadata of a features table: format, traverse name, the wavenumbers (rad/m) of
-    the ``psd_NN`` columns, and the units of every column.
+    the ``psd_NN`` columns, the units of every column, and ``row_spacing_m``, the width in
+    m of pooled rows, when the table has them (:attr:`FeatureTable.row_spacing`).
 
     A CSV keeps it in a JSON file beside it (:func:`features_metadata_path`), so that the CSV
     itself is plain (first line the header); a Parquet file in its key-value metadata under
@@ -74,6 +75,7 @@ def features_metadata(table: FeatureTable) -> dict[str, Any]:
         "omega_rad_per_m": [float(o) for o in table.omega],
         "spectrum_columns": names,
         "units": {**COLUMN_UNITS, **dict.fromkeys(names, "log10(m³/rad)")},
+        **({} if table.row_spacing is None else {"row_spacing_m": table.row_spacing}),
     }
 
 
@@ -228,7 +230,7 @@ def read_features(path: PathLike) -> FeatureTable:
         if names
         else np.zeros((n_rows, 0))
     )
-    return FeatureTable(cols, omega, log_psd, name)
+    return FeatureTable(cols, omega, log_psd, name, meta.get("row_spacing"))
 
 
 def _numbers(path: Path, column: str, values: Any, integer: bool = False) -> np.ndarray:
@@ -368,4 +370,16 @@ def _parse_metadata(text: str, where: Path, what: str) -> dict[str, Any]:
         and all(isinstance(o, int | float) and not isinstance(o, bool) for o in omega)
     ):
         raise FileFormatError(where, "must be a list of numbers (rad/m)", "omega_rad_per_m")
-    return {"name": str(doc.get("name", "")), "omega": [float(o) for o in omega]}
+    width = doc.get("row_spacing_m")
+    if width is not None and not (
+        isinstance(width, int | float)
+        and not isinstance(width, bool)
+        and math.isfinite(width)
+        and width > 0
+    ):
+        raise FileFormatError(where, "must be a positive width in m", "row_spacing_m")
+    return {
+        "name": str(doc.get("name", "")),
+        "omega": [float(o) for o in omega],
+        "row_spacing": None if width is None else float(width),
+    }

@@ -124,21 +124,34 @@ class FeatureTable:
         log10 of the patch-mean PSD in m³/rad (NaN rows for invalid frames).
     name : str
         Name of the traverse.
+    row_spacing : float or None
+        Width in m of the grid's cells across the track when a sparse traverse's rows were
+        pooled (:func:`rough_map.patch.pooled_rows`); None: square cells, as long as the
+        step along the profiles (``pi / omega[-1]``).
     """
 
     columns: Mapping[str, np.ndarray]
     omega: np.ndarray
     log_psd: np.ndarray
     name: str = ""
+    row_spacing: float | None = None
 
     def __post_init__(self) -> None:
         cols = {str(k): _read_only(v) for k, v in self.columns.items()}
         object.__setattr__(self, "columns", MappingProxyType(cols))
         object.__setattr__(self, "omega", _read_only(self.omega))
         object.__setattr__(self, "log_psd", _read_only(self.log_psd))
+        if self.row_spacing is not None:
+            width = float(self.row_spacing)
+            if not (math.isfinite(width) and width > 0):
+                raise ValueError(f"row_spacing must be a positive width in m, got {width}")
+            object.__setattr__(self, "row_spacing", width)
 
     def __reduce__(self) -> tuple[Any, ...]:  # a mappingproxy does not pickle
-        return (type(self), (dict(self.columns), self.omega, self.log_psd, self.name))
+        return (
+            type(self),
+            (dict(self.columns), self.omega, self.log_psd, self.name, self.row_spacing),
+        )
 
     def __len__(self) -> int:
         return len(self.columns["t"])
@@ -192,7 +205,13 @@ class FeatureTable:
         spectra = self.log_psd if log_psd is None else np.array(log_psd, dtype=float)
         if spectra.shape != self.log_psd.shape:
             raise ValueError(f"log_psd must have shape {self.log_psd.shape}, got {spectra.shape}")
-        return FeatureTable(new_cols, self.omega, spectra, self.name if name is None else name)
+        return FeatureTable(
+            new_cols,
+            self.omega,
+            spectra,
+            self.name if name is None else name,
+            self.row_spacing,
+        )
 
 
 @dataclass(frozen=True)

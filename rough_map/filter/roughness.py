@@ -374,7 +374,7 @@ class RoughnessSmoother(BaseEstimator):
             log.warning("%s: poses not all finite; roughness not smoothed", table.name)
             smoothed = {c: np.full(len(table), np.nan) for c in SMOOTH_COLUMNS}
         cols = {**dict(table.columns), **smoothed}
-        return FeatureTable(cols, table.omega, table.log_psd, table.name)
+        return FeatureTable(cols, table.omega, table.log_psd, table.name, table.row_spacing)
 
     def _evidence(
         self,
