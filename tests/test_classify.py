@@ -524,6 +524,22 @@ def test_unknown_classes_and_other_patch_are_refused(fitted_model, synthetic_tab
         fitted_model.predict(other)
 
 
+def test_a_table_of_other_rows_is_flagged(fitted_model, synthetic_tables, caplog) -> None:
+    """The model records each training traverse's row width; a table read in pooled rows
+    (a sparse lidar over swept ground) is classified, with a warning that says so."""
+    assert all(t["row_spacing_m"] is None for t in fitted_model.training_["traverses"])
+    table = synthetic_tables[1][0]
+    with caplog.at_level("WARNING", logger="rough_map.classify"):
+        fitted_model.predict(table)
+    assert "rows" not in caplog.text
+    wide = FeatureTable(table.columns, table.omega, table.log_psd, "lidar", row_spacing=0.032)
+    with caplog.at_level("WARNING", logger="rough_map.classify"):
+        got = fitted_model.predict(wide)
+    assert "'lidar': its profiles were read in rows 32.0 mm wide" in caplog.text
+    assert "training traverses in square cells" in caplog.text
+    np.testing.assert_array_equal(got.raw_class, fitted_model.predict(table).raw_class)
+
+
 def test_scores_match_sklearn() -> None:
     from sklearn.metrics import confusion_matrix, precision_recall_fscore_support
 

@@ -23,6 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 from sklearn.base import BaseEstimator, clone
 
 from rough_map import errors
+from rough_map.classify._rows import row_width, warn_other_rows
 from rough_map.classify.crossval import (
     cross_validated_report,
     filtered_held_out,
@@ -485,6 +486,7 @@ class TerrainModel(BaseEstimator):
         """
         self._check_fitted()
         self._check_omega(table)
+        warn_other_rows(self.training_, table)
         X, _ = feature_matrix(table)
         valid = np.asarray(table.valid, dtype=bool) & np.isfinite(X).all(axis=1)
         raw = np.full((len(X), len(self.classes_)), np.nan)
@@ -585,6 +587,7 @@ def _training_summary(tables: Sequence[Any], frames: TrainingFrames) -> dict[str
                 "frames": int(len(t)),
                 "labelled": int((labels_of(t) != "").sum()),
                 "valid": int(np.sum(t.valid)),
+                "row_spacing_m": row_width(t),
             }
             for t in tables
         ],
