@@ -230,6 +230,37 @@ def test_sparse_clouds_with_auto_spacing_stay_comparable(w, per_cell):
     assert abs(np.median(e[:, 1])) <= 0.1, np.median(e, axis=0)
 
 
+@cache
+def truth_errors(w: float) -> np.ndarray:
+    """(ln(R / R_exact), w - w_exact) of a reading that knew the ground: the field's own R
+    and w, against each sparse patch's exact 8 mm reading."""
+    f = _field(w)
+    out = []
+    for field, off in SPARSE:
+        ref = exact(w, off, field)
+        out.append((math.log(f.R / ref.R), f.w - ref.w))
+    return np.array(out)
+
+
+@pytest.mark.parametrize("w", WAVINESS)
+def test_single_patches_scatter_about_the_ground_as_much_as_sparse_readings_do(w):
+    """What "within 25 % of the exact reading" can mean for one patch. The exact 8 mm
+    reading of a 0.9 m patch is itself a sample: it scatters about the ground's true R by a
+    median |ln R| of 0.21-0.25 (and 0.04-0.05 in w), so even a reading that knew the true R
+    and w would differ from single exact patches by that much, around ln 1.25 = 0.22. A
+    sparse reading shares the exact one's low wavenumbers, so it is about as far from it as
+    the truth is at 1 point per cell (within 0.05), and within 0.15 farther at 0.5 (0.07-0.12
+    measured). The criterion holds
+    as the median over patches (above), as the issue's own table is stated."""
+    truth = truth_errors(w)
+    assert abs(np.median(truth[:, 0])) <= 0.05 and abs(np.median(truth[:, 1])) <= 0.02
+    spread = np.median(np.abs(truth[:, 0]))
+    assert 0.15 <= spread <= 0.3, spread
+    for per_cell, margin in ((1, 0.05), (0.5, 0.15)):
+        sparse = np.median(np.abs(errors(w, per_cell, auto=True)[:, 0]))
+        assert sparse <= spread + margin, (per_cell, sparse, spread)
+
+
 @pytest.mark.parametrize("w", WAVINESS)
 @pytest.mark.parametrize("step", [1, 2, 3])
 def test_exact_patches_read_alike_on_every_step_of_the_ladder(w, step):
@@ -569,6 +600,21 @@ def test_frames_on_wide_rows_measure_both_directions():
     assert omega[-1] == pytest.approx(math.pi / 0.008)
     # across the track: 28 samples of 32 mm, the same isotropic ground
     assert abs(math.log(row["R_lat"] / r.R)) < 1.0 and abs(row["w_lat"] - r.w) < 0.3
+
+
+def test_a_frame_flat_across_the_track_is_measured_along_it():
+    """Ground exactly the same across the track (the chipseal swept across the patch, no
+    waves), 1 point per cell on the auto grid: across the track its profiles are flat to
+    within the sensor's noise and have no roughness to read, so R_lat and w_lat are NaN,
+    but the frame is valid and reads along the track what the cloud reads on that grid."""
+    pts = captif_cloud(CAPTIF_STARTS[0], 1.0, seed=1)
+    row, omega, _ = frame_features(pts, Extraction(use_imu=False, auto_spacing=True))
+    assert row["valid"] and row["reason"] == "", row["reason"]
+    assert math.isnan(row["R_lat"]) and math.isnan(row["w_lat"])
+    square = auto_spacing(points_in_patch(pts, SPEC), SPEC)
+    assert omega[-1] == pytest.approx(math.pi / square.spacing)
+    one = cloud_roughness(pts, Extraction(patch=square, use_imu=False))[1]
+    assert row["R"] == pytest.approx(one.R, rel=1e-9) and row["w"] == pytest.approx(one.w)
 
 
 def test_a_sparse_traverse_over_swept_ground_pools_its_rows(tmp_path, caplog, capsys):

@@ -217,12 +217,17 @@ MEASURE_BATCH = 32
 def _measured(
     row: dict[str, Any], lon: PatchRoughness | PatchError, lat: PatchRoughness | PatchError
 ) -> FrameResult:
-    """A frame's result from its two estimates (or the first refusal)."""
-    for outcome in (lon, lat):
-        if isinstance(outcome, PatchError):
-            row["reason"] = str(outcome)
-            return row, None, None
-    assert isinstance(lon, PatchRoughness) and isinstance(lat, PatchRoughness)
+    """A frame's result from its two estimates. A refusal along the direction of travel
+    makes the frame invalid; one across it (ground the same across the track, whose
+    lateral profiles are flat to within the sensor's noise) leaves ``R_lat`` and ``w_lat``
+    NaN in a valid frame."""
+    if isinstance(lon, PatchError):
+        row["reason"] = str(lon)
+        return row, None, None
+    if isinstance(lat, PatchError):
+        log.debug("no roughness across the track: %s", lat)
+    assert isinstance(lon, PatchRoughness)
+    across = lat if isinstance(lat, PatchRoughness) else None
     row.update(
         valid=True,
         R=lon.R,
@@ -233,8 +238,8 @@ def _measured(
         se_w=lon.se_w,
         rms=lon.rms,
         iso_class=lon.iso_class,
-        R_lat=lat.R,
-        w_lat=lat.w,
+        R_lat=math.nan if across is None else across.R,
+        w_lat=math.nan if across is None else across.w,
         fit_residual=lon.fit_residual,
     )
     return row, lon.omega, lon.psd
