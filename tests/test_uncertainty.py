@@ -308,7 +308,7 @@ def test_contracted_design_effect_matches_the_lag_correlations():
     alpha, m = 1.0, 112
     t0, tw = _uncertainty._effect_tables(112, "hann", "cell_mean", alpha, m)
     v = rng.standard_normal((3, 56)) * (rng.random((3, 56)) > 0.3)
-    got = _uncertainty._design_effects(v, t0, tw)
+    got = _uncertainty._design_effects(v, t0, tw)[0]
     for row, d in zip(v, got, strict=True):
         rho = _uncertainty._lag_correlations(112, "hann", "cell_mean", alpha, row.tobytes())
         np.testing.assert_allclose(d, _uncertainty.design_effect(rho, m), rtol=1e-10)

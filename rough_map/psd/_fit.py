@@ -85,16 +85,18 @@ def _lateral_correction(
     opt: Options,
     seg_n: int,
     spacing: float,
-) -> tuple[np.ndarray | None, np.ndarray]:
+) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
     """Per-bin log gain (patches, bins) of each patch's lateral scale over the isotropic
     one that the cell-mean tables assume (:mod:`rough_map.psd._lateral`), at the
-    waviness the fit finds without it, and the lateral scale ``a`` of each patch.
+    waviness the fit finds without it, the lateral scale ``a`` of each patch, and the
+    scale its rows show (a fractional index into ``A_NODES``, for the standard errors).
 
     Only ``unbiased`` fits of cell means with the cross-spectrum of one segment are
-    corrected; the others get None and a scale of NaN (not read)."""
+    corrected; the others get None and scales of NaN (not read)."""
     cross = spectra.cross
     if opt.method != "unbiased" or opt.gridding != "cell_mean" or cross is None:
-        return None, np.full(mean_psd.shape[0], math.nan)
+        nan = np.full(mean_psd.shape[0], math.nan)
+        return None, nan, nan
     if opt.waviness is not None:
         w = np.full(mean_psd.shape[0], float(opt.waviness))
     else:  # one step of the leakage iteration of _leakage_offsets is close enough here
@@ -107,7 +109,7 @@ def _lateral_correction(
     # scale times their ratio (the family is stretched across): the gain is read at what
     # the rows show, the scale is reported per step along the profiles.
     ratio = 1.0 if opt.row_spacing is None else opt.row_spacing / spacing
-    return gain, lateral_scale_value(position) / ratio
+    return gain, lateral_scale_value(position) / ratio, position
 
 
 def fit(
@@ -159,7 +161,7 @@ def fit(
         pr = project(logp, plan)
     # Projections of the per-bin corrections on (centred x, mean).
     sx = (shift * pr.xc).sum(axis=1)
-    lateral, scale = _lateral_correction(
+    lateral, scale, rows_scale = _lateral_correction(
         spectra, mean_psd, floor_or_zero, pr, sx, opt, seg_n, spacing
     )
     if lateral is not None:
@@ -187,7 +189,7 @@ def fit(
     resid = np.where(pr.mask, mean_log - bm[:, None] - wm[:, None] * plan.x[None, :], 0.0)
     fit_res = np.sqrt((resid * resid).sum(axis=1) / pr.mask.sum(axis=1))
     # Standard errors of the patch means, with the correlation between profiles.
-    se = standard_errors(b, wv, wm, pr, opt, seg_n=seg_n, bias=bias)
+    se = standard_errors(b, wv, wm, pr, opt, seg_n=seg_n, bias=bias, scale=rows_scale)
     read = (scale, reach)
     return list(
         _results(

@@ -40,12 +40,8 @@ import numpy as np
 from rough_map.psd._cache import table_cache
 from rough_map.psd._leakage import shipped_array
 from rough_map.psd._spectra import frozen
-from rough_map.psd._uncertainty import _TRI_S, _TRI_W, W_NODES, _matern
+from rough_map.psd._uncertainty import _TRI_S, _TRI_W, A_NODES, W_NODES, _matern
 
-#: Lateral scales of the tables: ``a = 0`` is ground that is the same across the patch,
-#: ``a = 1`` isotropic ground.
-A_NODES = np.array([0.0, 0.1, 0.2, 0.35, 0.5, 0.7, 1.0, 1.4, 2.0, 3.0, 5.0])
-frozen(A_NODES)
 _ISOTROPIC = int(np.flatnonzero(A_NODES == 1.0)[0])
 #: Folded wavenumbers on either side of the band taken into the gain.
 _ALIASES = 2
