@@ -395,6 +395,28 @@ def test_features_csv_of_rough_map_0_1_still_reads(small_features, tmp_path: Pat
     np.testing.assert_allclose(back["R"], small_features["R"], rtol=1e-8)
 
 
+def test_features_csv_without_the_newer_columns_reads_them_as_nan(
+    small_features, tmp_path: Path
+) -> None:
+    """A table written before the lateral scale and omega_noise columns (or the standard
+    errors, or the smoothed roughness) were added reads with those columns NaN."""
+    import csv
+
+    path = write_features(small_features, tmp_path / "f.csv")
+    assert np.isfinite(small_features["lateral_scale"][small_features.valid]).all()
+    newer = ("lateral_scale", "omega_noise", "se_lnR", "se_w", "R_smooth")
+    rows = list(csv.DictReader(path.open(newline="", encoding="utf-8")))
+    keep = [k for k in rows[0] if k not in newer]
+    with path.open("w", newline="", encoding="utf-8") as fh:
+        out = csv.DictWriter(fh, keep, extrasaction="ignore")
+        out.writeheader()
+        out.writerows(rows)
+    back = read_features(path)
+    for name in newer:
+        assert np.isnan(back[name]).all(), name
+    np.testing.assert_allclose(back["R"], small_features["R"], rtol=1e-8)
+
+
 def test_features_parquet_keeps_the_metadata_inside(small_features, tmp_path: Path) -> None:
     pq = pytest.importorskip("pyarrow.parquet")
     path = write_features(small_features, tmp_path / "features.parquet")

@@ -611,6 +611,7 @@ def test_a_frame_flat_across_the_track_is_measured_along_it():
     row, omega, _ = frame_features(pts, Extraction(use_imu=False, auto_spacing=True))
     assert row["valid"] and row["reason"] == "", row["reason"]
     assert math.isnan(row["R_lat"]) and math.isnan(row["w_lat"])
+    assert row["lateral_scale"] == pytest.approx(0.0, abs=0.05)  # and says why
     square = auto_spacing(points_in_patch(pts, SPEC), SPEC)
     assert omega[-1] == pytest.approx(math.pi / square.spacing)
     one = cloud_roughness(pts, Extraction(patch=square, use_imu=False))[1]
@@ -649,8 +650,10 @@ def test_a_sparse_traverse_over_swept_ground_pools_its_rows(tmp_path, caplog, ca
     one = _read(ground(CAPTIF_STARTS[2], 2), auto=True)[1]
     assert table.columns["R"][2] == pytest.approx(one.R, rel=1e-9)
     assert table.row_spacing == pytest.approx(0.032)
+    assert (table["lateral_scale"] < 0.2).all()  # per step along: the rows show 4 times it
     back = read_features(write_features(table, tmp_path / "f.csv"))
     assert back.row_spacing == pytest.approx(0.032)
+    np.testing.assert_allclose(back["lateral_scale"], table["lateral_scale"], rtol=1e-9)
     square = read_features(write_features(table.replace(name="x"), tmp_path / "g.parquet"))
     assert square.row_spacing == pytest.approx(0.032)  # replace and Parquet keep it too
     assert main(["features", str(tmp_path), "--out", str(tmp_path / "h.csv")]) == 0

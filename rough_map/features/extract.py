@@ -241,6 +241,8 @@ def _measured(
         R_lat=math.nan if across is None else across.R,
         w_lat=math.nan if across is None else across.w,
         fit_residual=lon.fit_residual,
+        lateral_scale=lon.lateral_scale,
+        omega_noise=lon.omega_noise,
     )
     return row, lon.omega, lon.psd
 

@@ -33,8 +33,12 @@ SMOOTH_COLUMNS = ("R_smooth", "w_smooth", "sigma_lnR_smooth", "sigma_w_smooth")
 #: Standard errors of a frame's ln R and w, with the correlation between its profiles
 #: (:attr:`rough_map.psd.PatchRoughness.se_lnR`).
 SE_COLUMNS = ("se_lnR", "se_w")
+#: What else a frame's reading says (:class:`rough_map.psd.PatchRoughness`): the ground's
+#: lateral scale (1 isotropic, 0 the same across the track; NaN when not read) and the
+#: wavenumber in rad/m up to which the ground stays above the sensor's noise floor.
+READING_COLUMNS = ("lateral_scale", "omega_noise")
 #: Columns a table written before they existed may lack (read as NaN).
-OPTIONAL_COLUMNS = frozenset(SMOOTH_COLUMNS + SE_COLUMNS)
+OPTIONAL_COLUMNS = frozenset(SMOOTH_COLUMNS + SE_COLUMNS + READING_COLUMNS)
 
 #: Columns of a features table, in order (spectrum columns follow).
 COLUMNS = (
@@ -62,6 +66,7 @@ COLUMNS = (
     "level_angle",
     *SE_COLUMNS,
     *SMOOTH_COLUMNS,
+    *READING_COLUMNS,
 )
 TEXT_COLUMNS = frozenset({"iso_class", "reason", "label"})
 BOOL_COLUMNS = frozenset({"valid"})
@@ -97,6 +102,8 @@ COLUMN_UNITS = {
     "w_smooth": "",
     "sigma_lnR_smooth": "",  # standard deviation of ln R: a relative error of R
     "sigma_w_smooth": "",
+    "lateral_scale": "",
+    "omega_noise": "rad/m",
 }
 
 
