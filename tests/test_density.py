@@ -234,10 +234,9 @@ def test_sparse_clouds_with_auto_spacing_stay_comparable(w, per_cell):
 def truth_errors(w: float) -> np.ndarray:
     """(ln(R / R_exact), w - w_exact) of a reading that knew the ground: the field's own R
     and w, against each sparse patch's exact 8 mm reading."""
-    f = _field(w)
     out = []
     for field, off in SPARSE:
-        ref = exact(w, off, field)
+        ref, f = exact(w, off, field), _field(w, field)
         out.append((math.log(f.R / ref.R), f.w - ref.w))
     return np.array(out)
 
@@ -250,8 +249,8 @@ def test_single_patches_scatter_about_the_ground_as_much_as_sparse_readings_do(w
     and w would differ from single exact patches by that much, around ln 1.25 = 0.22. A
     sparse reading shares the exact one's low wavenumbers, so it is about as far from it as
     the truth is at 1 point per cell (within 0.05), and within 0.15 farther at 0.5 (0.07-0.12
-    measured). The criterion holds
-    as the median over patches (above), as the issue's own table is stated."""
+    measured). The criterion holds as the median over patches (above), as the issue's own
+    table is stated."""
     truth = truth_errors(w)
     assert abs(np.median(truth[:, 0])) <= 0.05 and abs(np.median(truth[:, 1])) <= 0.02
     spread = np.median(np.abs(truth[:, 0]))
