@@ -2,6 +2,9 @@
 # Set up rough_map in a virtual environment, on a fresh Debian or Ubuntu machine.
 #   bash .ci/setup.sh          install rough_map into .venv (and the Debian packages it needs)
 #   bash .ci/setup.sh --dev    also the test tools (pytest, hypothesis, ruff, mypy, import-linter, ...)
+#   bash .ci/setup.sh --latest [--dev]   the newest releases pip serves within pyproject's
+#                              ranges, not the tested ones of constraints.txt (a developer's
+#                              check of new releases; CI installs the tested set)
 #
 # The environment is, in this order: ./.venv if it is already a virtual environment; the
 # virtual environment that is active (VIRTUAL_ENV), linked as ./.venv; otherwise a new ./.venv
@@ -12,11 +15,14 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 extras=""
-case "${1:-}" in
-  "") ;;
-  --dev) extras="[dev]" ;;
-  *) echo "setup: unknown option '$1' (use --dev or nothing)" >&2; exit 2 ;;
-esac
+lock=(-c constraints.txt)
+for arg in "$@"; do
+  case "$arg" in
+    --dev) extras="[dev]" ;;
+    --latest) lock=() ;;
+    *) echo "setup: unknown option '$arg' (use --dev, --latest or nothing)" >&2; exit 2 ;;
+  esac
+done
 
 say() { echo "setup: $*" >&2; }
 
@@ -90,10 +96,15 @@ if [ -n "$make_venv" ]; then
   "$py" -m venv .venv
 fi
 
-say "installing rough_map${extras} and its dependencies into .venv" \
+if [ "${#lock[@]}" -gt 0 ]; then
+  versions="the tested versions of constraints.txt"
+else
+  versions="the newest versions pip serves (--latest)"
+fi
+say "installing rough_map${extras} and its dependencies into .venv, $versions" \
   "(about 1 GB on the first run: a few minutes; pip shows each package)"
 .venv/bin/python -m pip install --disable-pip-version-check --progress-bar off \
-  -e ".${extras}" 2>&1 | { grep --line-buffered -v '^Requirement already satisfied' || true; } >&2
+  ${lock[@]+"${lock[@]}"} -e ".${extras}" 2>&1 | { grep --line-buffered -v '^Requirement already satisfied' || true; } >&2
 if ! err=$(.venv/bin/python -c "import open3d" 2>&1); then
   say "open3d does not import: $(printf '%s\n' "$err" | tail -n 1)"
   exit 1

@@ -66,3 +66,33 @@ def test_limits_table_shows_the_values_in_the_code() -> None:
         module, _, name = where.strip().strip("`").rpartition(".")
         value = getattr(importlib.import_module(module), name)
         assert _limit_value(shown) == value, f"{where.strip()} is {value}, README shows {shown}"
+
+
+def test_matcher_with_a_tolerance_lets_only_the_numbers_move() -> None:
+    assert readme_check.same_line("R 2.308e-04 (sigma 0.300)", "R 2.306e-04 (sigma 0.301)", 0.05)
+    assert not readme_check.same_line("R 2.308e-04", "R 2.306e-04")
+    assert not readme_check.same_line("R 2.308e-04", "R 2.508e-04", 0.05)
+    assert not readme_check.same_line("R 2.308e-04 ISO E", "R 2.308e-04 ISO F", 0.05)
+
+
+def test_the_lock_pins_every_dependency_within_pyproject_ranges() -> None:
+    """``constraints.txt`` (what .ci/setup.sh installs) pins each of the library's
+    dependencies, at a version its pyproject range admits."""
+    import tomllib
+
+    from packaging.requirements import Requirement
+
+    pins = {}
+    for line in (ROOT / "constraints.txt").read_text(encoding="utf-8").splitlines():
+        if line.strip() and not line.startswith("#"):
+            name, _, version = line.partition("==")
+            assert version, f"constraints.txt: {line!r} is not pinned with =="
+            pins[name.strip().lower().replace("_", "-")] = version.strip()
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["project"]
+    for spec in project["dependencies"]:
+        req = Requirement(spec)
+        name = req.name.lower().replace("_", "-")
+        assert name in pins, f"constraints.txt does not pin {name}"
+        assert req.specifier.contains(pins[name]), f"{name}=={pins[name]} is outside {spec}"
+    setup = (ROOT / ".ci" / "setup.sh").read_text(encoding="utf-8")
+    assert "-c constraints.txt" in setup

@@ -18,6 +18,7 @@ generators in :data:`TABLES`; they are slow (simulated courses), so they run onl
     python tools/readme_check.py --only features  # the blocks whose commands contain 'features'
     python tools/readme_check.py --tables         # also regenerate the generated tables
     python tools/readme_check.py --update         # write what the commands print into README.md
+    python tools/readme_check.py --rtol 0.05      # numbers within 5 % (after setup.sh --latest)
 
 Exit status 0 when everything matches, 1 otherwise (the differences are printed).
 """
@@ -31,7 +32,7 @@ import re
 import subprocess
 import sys
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -82,8 +83,28 @@ def _norm(line: str) -> str:
     return " ".join(TIMING.sub("<ms>", line).split())
 
 
-def matches(expected: list[str], actual: list[str]) -> bool:
-    """Line-by-line match; an expected ``...`` line matches any run of lines."""
+NUMBER = re.compile(r"[-+]?\d+(?:\.\d+)?(?:e[-+]?\d+)?")
+
+
+def same_line(expected: str, actual: str, rtol: float = 0.0) -> bool:
+    """Two normalised lines are the same: to the letter, or with ``rtol`` > 0 the same text
+    around numbers that agree within ``rtol`` of their size (a check on newer libraries,
+    whose last digits may move)."""
+    if expected == actual or rtol <= 0:
+        return expected == actual
+    if NUMBER.split(expected) != NUMBER.split(actual):
+        return False
+    pairs = zip(NUMBER.findall(expected), NUMBER.findall(actual), strict=True)
+    return all(abs(a - b) <= rtol * max(abs(a), abs(b)) for a, b in _floats(pairs))
+
+
+def _floats(pairs: Iterable[tuple[str, str]]) -> Iterator[tuple[float, float]]:
+    return ((float(a), float(b)) for a, b in pairs)
+
+
+def matches(expected: list[str], actual: list[str], rtol: float = 0.0) -> bool:
+    """Line-by-line match; an expected ``...`` line matches any run of lines; numbers within
+    ``rtol`` (relative) match when it is given (:func:`same_line`)."""
     exp = [_norm(e) for e in expected if e.strip() or False]
     act = [_norm(a) for a in actual if a.strip()]
 
@@ -92,7 +113,7 @@ def matches(expected: list[str], actual: list[str]) -> bool:
             return j == len(act)
         if exp[i] == "...":
             return any(go(i + 1, k) for k in range(j, len(act) + 1))
-        return j < len(act) and exp[i] == act[j] and go(i + 1, j + 1)
+        return j < len(act) and same_line(exp[i], act[j], rtol) and go(i + 1, j + 1)
 
     return go(0, 0)
 
@@ -120,7 +141,12 @@ def _environment() -> dict[str, str]:
 
 
 def check_transcripts(
-    lines: list[str], only: str | None, update: bool, scratch: Path, log: Callable[[str], None]
+    lines: list[str],
+    only: str | None,
+    update: bool,
+    scratch: Path,
+    log: Callable[[str], None],
+    rtol: float = 0.0,
 ) -> tuple[bool, list[str]]:
     env = _environment()
     ok = True
@@ -135,7 +161,7 @@ def check_transcripts(
             log(f"$ {step.command}")
             code, out = run_step(step, scratch, env)
             body.append("$ " + step.command)
-            if matches(step.expected, out):
+            if matches(step.expected, out, rtol):
                 body.extend(step.expected)
                 continue
             ok = False
@@ -189,6 +215,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", help="only the blocks with a command containing this text")
     ap.add_argument("--tables", action="store_true", help="also regenerate the generated tables")
     ap.add_argument("--update", action="store_true", help="write the new outputs into README.md")
+    ap.add_argument(
+        "--rtol",
+        type=float,
+        default=0.0,
+        help="let numbers differ by this relative amount (after 'setup.sh --latest': 0.05); "
+        "default 0, every digit as printed on the tested versions",
+    )
     ap.add_argument("--keep", type=Path, help="scratch folder to use and keep (default: temporary)")
     args = ap.parse_args(argv)
 
@@ -202,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
         for name in ("configs", "models"):
             if not (scratch / name).exists():
                 (scratch / name).symlink_to(ROOT / name)
-        ok, new = check_transcripts(lines, args.only, args.update, scratch, log)
+        ok, new = check_transcripts(lines, args.only, args.update, scratch, log, args.rtol)
     if args.tables:
         ok_t, new = check_tables(new, args.update, log)
         ok = ok and ok_t
