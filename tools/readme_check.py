@@ -32,7 +32,7 @@ import re
 import subprocess
 import sys
 import tempfile
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -94,12 +94,11 @@ def same_line(expected: str, actual: str, rtol: float = 0.0) -> bool:
         return expected == actual
     if NUMBER.split(expected) != NUMBER.split(actual):
         return False
-    pairs = zip(NUMBER.findall(expected), NUMBER.findall(actual), strict=True)
-    return all(abs(a - b) <= rtol * max(abs(a), abs(b)) for a, b in _floats(pairs))
-
-
-def _floats(pairs: Iterable[tuple[str, str]]) -> Iterator[tuple[float, float]]:
-    return ((float(a), float(b)) for a, b in pairs)
+    for a, b in zip(NUMBER.findall(expected), NUMBER.findall(actual), strict=True):
+        x, y = float(a), float(b)
+        if abs(x - y) > rtol * max(abs(x), abs(y)):
+            return False
+    return True
 
 
 def matches(expected: list[str], actual: list[str], rtol: float = 0.0) -> bool:
