@@ -175,3 +175,72 @@ def power_law_field(n: int, spacing: float, R: float, w: float, seed: int) -> Fi
     heights = np.fft.irfft2(np.fft.rfft2(white) * amp, s=(n, n))
     heights.setflags(write=False)
     return Field(heights, spacing, float(R), float(w))
+
+
+# ------------------------------------------------------- ground that is not a power law
+#: Spacing in m of the height grids below: a photogrammetric or DEM-like 1 cm grid.
+GRID_STEP = 0.01
+
+
+@lru_cache(maxsize=8)
+def real_like_surface(kind: str, seed: int, n: int = 300) -> np.ndarray:
+    """A 1 cm height grid (``n`` x ``n``, read-only) of ground outside the Gaussian
+    power-law family, as users bring it; read between the nodes bilinearly
+    (:func:`bilinear`), as a height map exported or gridded from a survey is.
+
+    ``kind``:
+
+    * ``"blocks"``: paving, rounded stones of about 9 cm on a jittered lattice, each at
+      its own height (4 mm rms), with joints between them: a characteristic scale.
+    * ``"boulders"``: a gravel bed with boulders 3-20 cm across and half as high, with
+      steep sides: heavy tails, slopes near vertical.
+    * ``"smooth"``: an isotropic power law (w -2.4, 4 mm rms) smoothed over 4 mm, as a
+      stereo reconstruction is: no power below a few millimetres.
+    """
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:n, 0:n] * GRID_STEP
+    if kind == "blocks":
+        stone = 0.09
+        k = int(n * GRID_STEP / stone) + 2
+        cy, cx = np.mgrid[0:k, 0:k] * stone
+        centres = np.column_stack([cx.ravel(), cy.ravel()])
+        centres += rng.uniform(-0.3, 0.3, centres.shape) * stone
+        from scipy.spatial import cKDTree
+
+        d, i = cKDTree(centres).query(np.column_stack([x.ravel(), y.ravel()]), k=2)
+        edge = np.clip((d[:, 1] - d[:, 0]) / (0.5 * stone), 0.0, 1.0)
+        z = rng.normal(0.0, 0.004, len(centres))[i[:, 0]] + 0.012 * np.sqrt(edge)
+        z = z.reshape(n, n)
+    elif kind == "boulders":
+        z = ndimage.gaussian_filter(rng.normal(0.0, 0.01, (n, n)), 1.0)
+        side = n * GRID_STEP
+        for _ in range(int(12 * side * side)):
+            r = rng.uniform(0.03, 0.2)
+            h = rng.uniform(0.3, 0.8) * r
+            x0, y0 = rng.uniform(0.0, side, 2)
+            rr = np.hypot(x - x0, y - y0) / r
+            z = np.maximum(z, h * np.sqrt(np.clip(1.0 - rr**4, 0.0, None)))
+    elif kind == "smooth":
+        fine = 4
+        m = n * fine
+        step = GRID_STEP / fine
+        k1 = 2 * np.pi * np.fft.fftfreq(m, step)
+        kk = np.hypot(*np.meshgrid(k1, k1))
+        kk[0, 0] = 1.0
+        amp = kk ** ((-2.4 - 1.0) / 2.0)
+        amp[0, 0] = 0.0
+        noise = rng.normal(size=(m, m)) + 1j * rng.normal(size=(m, m))
+        f = ndimage.gaussian_filter(np.fft.ifft2(amp * noise).real, 0.004 / step)
+        z = (f * (0.004 / f.std()))[::fine, ::fine]
+    else:
+        raise ValueError(f"unknown surface kind {kind!r}")
+    z = np.ascontiguousarray(z, dtype=float)
+    z.setflags(write=False)
+    return z
+
+
+def bilinear(grid: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Heights in m at ``(x, y)`` in m (from node (0, 0)) of a 1 cm grid
+    (:data:`GRID_STEP`), by bilinear interpolation between its nodes."""
+    coords = np.stack([np.asarray(y, float), np.asarray(x, float)]) / GRID_STEP
+    return ndimage.map_coordinates(grid, coords, order=1, mode="nearest")

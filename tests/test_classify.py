@@ -420,7 +420,10 @@ def test_model_learns_and_generalises(synthetic_tables, fitted_model) -> None:
         assert raw_f1 >= 0.7, table.name
         assert filt_f1 >= max(raw_f1, 0.85), table.name
         assert np.all(pred.raw_class[~v] == "")
-        assert np.all(pred.filtered_class != "")  # invalid frames: predict step only
+        # invalid frames: the filter only predicts over them, and they get no class
+        assert np.all(pred.filtered_class[v] != "")
+        assert np.all(pred.filtered_class[~v] == "")
+        assert np.isnan(pred.filtered_confidence[~v]).all()
         np.testing.assert_allclose(pred.filtered_proba.sum(axis=1), 1.0)
     report = model.cv_report_
     assert report["scheme"].startswith("GroupKFold")
@@ -470,7 +473,11 @@ def test_invalid_frames_predict_only(fitted_model) -> None:
     assert np.isnan(pred.raw_proba[~pred.valid]).all()
     assert np.isnan(pred.raw_confidence[~pred.valid]).all()
     assert np.all(pred.level[~pred.valid] == "")
-    assert np.mean(pred.filtered_class == "gravel") > 0.9
+    assert np.mean(pred.filtered_class[pred.valid] == "gravel") > 0.9
+    # the filter carries its belief over the frames not read, but gives them no class
+    assert np.all(pred.filtered_class[~pred.valid] == "")
+    belief = pred.classes[np.argmax(pred.filtered_proba[~pred.valid], axis=1)]
+    assert np.mean(belief == "gravel") > 0.9
 
 
 def test_an_isolated_defect_does_not_change_the_class(fitted_model) -> None:

@@ -245,7 +245,8 @@ def test_unlabelled_and_invalid_frames_are_counted(sim, trained, tmp_path, capsy
     assert run(capsys, "classify", path, "--model", trained, "--out", labels)[0] == 0
     rows = read_labels(labels)
     assert list(rows["raw_class"][5:9]) == [""] * 4  # no raw class without a valid patch
-    assert all(rows["filtered_class"][5:9] != "")  # the filter still predicts them
+    assert list(rows["filtered_class"][5:9]) == [""] * 4  # nor a filtered one (issue 29)
+    assert all(rows["filtered_class"][9:] != "")
 
 
 def test_train_refuses_traverses_without_labels(sim, tmp_path, capsys) -> None:

@@ -80,7 +80,9 @@ class TerrainPrediction:
     raw_class : ndarray of str, shape (n,)
         Argmax of ``raw_proba``; ``""`` for invalid frames.
     filtered_class : ndarray of str, shape (n,)
-        Argmax of ``filtered_proba``, or the Viterbi path when ``mode == "viterbi"``.
+        Argmax of ``filtered_proba``, or the Viterbi path when ``mode == "viterbi"``;
+        ``""`` for invalid frames (the filter carries its belief over them, but they were
+        not read).
     level : ndarray of str, shape (n,)
         Roughness level from R; ``""`` for invalid frames.
     distance : ndarray, shape (n,)
@@ -120,9 +122,10 @@ class TerrainPrediction:
 
     @property
     def filtered_confidence(self) -> NDArray[np.float64]:
-        """Filtered probability of the filtered class."""
-        idx = np.searchsorted(self.classes, self.filtered_class)
-        return self.filtered_proba[np.arange(len(idx)), idx]
+        """Filtered probability of the filtered class (NaN for invalid frames)."""
+        idx = np.minimum(np.searchsorted(self.classes, self.filtered_class), len(self.classes) - 1)
+        picked = self.filtered_proba[np.arange(len(idx)), idx]
+        return np.where(self.valid, picked, np.nan)
 
 
 class TerrainModel(BaseEstimator):
@@ -448,6 +451,8 @@ class TerrainModel(BaseEstimator):
             filtered, filtered_class = raw.copy(), raw_class.copy()
         else:
             filtered, filtered_class = self._filter(raw, distance, valid & ~defect, mode)
+        # A frame that was not read gets no class (the filter only carries its belief over it)
+        filtered_class = np.where(valid, filtered_class, "").astype(object)
         level = roughness_level(
             np.where(valid, table.columns["R"], np.nan), self.level_names_, self.level_thresholds_
         )

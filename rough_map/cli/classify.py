@@ -4,8 +4,8 @@ The CSV has one row per frame: ``frame``, ``t`` (s), ``x``, ``y`` (m), ``distanc
 the path, ``valid``, the raw (per-frame classifier) class and its probability, the
 filtered class (path filter, mode as the model's unless ``--mode``) and its probability,
 the roughness ``level``, ``R_m3_per_rad`` and the true ``label`` if the traverse has one.
-A frame without a valid patch has an empty raw class and probability: the classifier has
-nothing to go on, and the filter only carries its belief forward over it.
+A frame without a valid patch has an empty raw and filtered class and probability: the
+classifier has nothing to go on, and the filter only carries its belief forward over it.
 """
 
 from __future__ import annotations
@@ -126,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
             )
     n_invalid = int((~pred.valid).sum())
     status(args, f"wrote {len(tab)} frames ({n_invalid} without a valid patch) to {args.out}")
-    counts = Counter(str(c) for c in pred.filtered_class)
+    counts = Counter(str(c) for c in pred.filtered_class if c)
     levels = Counter(str(c) for c in pred.level if c)
     if args.json:
         emit_json(

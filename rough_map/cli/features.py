@@ -19,7 +19,7 @@ from rough_map.cli._common import (
     patch_spec,
     table,
 )
-from rough_map.patch import Extraction, PatchSpec
+from rough_map.patch import Extraction, GriddedPatch, PatchSpec
 
 if TYPE_CHECKING:
     from rough_map.psd import PatchRoughness
@@ -136,8 +136,17 @@ def run_cloud(args: argparse.Namespace) -> int:
     if args.json:
         emit_json(result)
         return 0
-    rows = [
-        ["cloud", f"{args.source} ({len(points):,} points, {grid.n_points:,} in the patch)"],
+    print(table(_cloud_rows(args.source, len(points), grid, rough, timing_ms)))
+    return 0
+
+
+def _cloud_rows(
+    source: Path, n_points: int, grid: GriddedPatch, rough: PatchRoughness, timing_ms: dict
+) -> list[list[str]]:
+    """The rows of ``rough-map features CLOUD``'s table."""
+    spec = grid.spec
+    return [
+        ["cloud", f"{source} ({n_points:,} points, {grid.n_points:,} in the patch)"],
         [
             "patch",
             f"{spec.n * spec.spacing:.3f} m square, {spec.ahead:.3f} m ahead, "
@@ -153,6 +162,12 @@ def run_cloud(args: argparse.Namespace) -> int:
         ],
         ["w", f"{rough.w:.3f}  (sigma {rough.sigma_w:.3f}, se {rough.se_w:.3f})"],
         ["rms", f"{rough.rms * 1e3:.2f} mm"],
+        [
+            "in band",
+            f"rms {rough.band_rms * 1e3:.2f} mm, PSD {rough.centre_psd:.3e} m³/rad at its "
+            f"log centre {rough.omega_centre:.1f} rad/m (no extrapolation)",
+        ],
+        ["shape", _shape(rough)],
         ["lateral", _lateral(rough.lateral_scale)],
         ["profiles", f"{rough.n_profiles} used, {rough.n_dropped} dropped"],
         [
@@ -166,8 +181,6 @@ def run_cloud(args: argparse.Namespace) -> int:
             f"{timing_ms['process']:.1f} ms after loading ({timing_ms['load']:.1f} ms to load)",
         ],
     ]
-    print(table(rows))
-    return 0
 
 
 def _grid_text(spec: PatchSpec) -> str:
@@ -190,11 +203,29 @@ def _reach(rough: PatchRoughness) -> str:
     return f"; ground above the noise floor to {top:.1f} rad/m"
 
 
+def _shape(rough: PatchRoughness) -> str:
+    """Whether the fit is a power law over the band, and whether it describes the patch."""
+    from rough_map.features import inconsistency
+
+    if not rough.consistent:
+        return "CHECK FAILED: " + inconsistency(rough)
+    z = rough.curvature_z
+    if not rough.power_law:
+        bend = "falls ever faster" if z < 0 else "flattens"
+        return (
+            f"not a power law: the log PSD {bend} across the band (curvature z {z:+.1f}); "
+            "R at 1 rad/m depends on the fit, compare the band's PSD"
+        )
+    return (
+        f"power law over the band (curvature z {z:+.1f}, fit rms / band rms {rough.rms_ratio:.2f})"
+    )
+
+
 def _lateral(scale: float) -> str:
     """The lateral scale row: how alike neighbouring profiles are."""
     if not math.isfinite(scale):
         return "not read (the paper's method, or Welch segments)"
     return (
-        f"scale {scale:.2f} (1: isotropic ground, 0: the same across the patch; "
-        "corrected for in the cell means)"
+        f"scale {scale:.2f} (1: isotropic ground, 0: the same across the patch, up to 5: "
+        "rougher across; corrected for in the cell means)"
     )

@@ -77,7 +77,7 @@ def write_labels(features: FeatureTable, prediction: TerrainPrediction, path: Pa
         list(pred.raw_class),
         ["" if not math.isfinite(v) else f"{v:.4f}" for v in np.asarray(raw_p).tolist()],
         list(pred.filtered_class),
-        [f"{v:.4f}" for v in np.asarray(filt_p).tolist()],
+        ["" if not math.isfinite(v) else f"{v:.4f}" for v in np.asarray(filt_p).tolist()],
         list(pred.level),
         ["true" if v else "false" for v in np.asarray(defect).tolist()],
         *(["" if not math.isfinite(v) else f"{v:.6g}" for v in col.tolist()] for col in smoothed),

@@ -18,7 +18,7 @@ several traverses.
   CSV with its JSON metadata beside it, or Parquet).
 """
 
-from rough_map.features.extract import cloud_roughness, frame_features
+from rough_map.features.extract import cloud_roughness, frame_features, inconsistency
 from rough_map.features.files import (
     FEATURES_FORMAT,
     FEATURES_FORMAT_VERSION,
@@ -65,6 +65,7 @@ __all__ = [
     "features_metadata_path",
     "frame_features",
     "frame_jobs",
+    "inconsistency",
     "iter_frames",
     "label_summary",
     "read_features",

@@ -37,8 +37,12 @@ from rough_map.features.table import (
 from rough_map.patch import (
     Extraction,
     GriddedPatch,
+    Lattice,
     PatchSpec,
+    find_lattice,
+    grid_lattice,
     grid_points,
+    lattice_patch,
     points_in_patch,
     pooled_rows,
 )
@@ -53,6 +57,7 @@ __all__ = [
     "feature_table",
     "frame_features",
     "grid_frame",
+    "inconsistency",
     "measure_frames",
 ]
 
@@ -129,9 +134,10 @@ def grid_frame(
     min_points: int = 2000,
     min_fill: float = 0.7,
 ) -> GriddedFrame:
-    """The first half of :func:`frame_features` (same parameters): cut and grid the patch,
-    and decide whether it has enough points and filled cells to be measured. The points
-    are not needed after it."""
+    """The first half of :func:`frame_features` (same parameters): cut and grid the patch
+    (on its nodes for a cloud on a lattice: :func:`cloud_roughness`), and decide whether it
+    has enough points and filled cells to be measured. The points are not needed after
+    it."""
     ex = _as_extraction(extraction)
     check_int("min_points", min_points, low=0, high=2**62, unit="points")
     check_real("min_fill", min_fill, "", low=0.0, high=1.0)
@@ -139,8 +145,13 @@ def grid_frame(
         check_real(name, angle, "rad", low=-math.pi / 2, high=math.pi / 2, none=True)
     row: dict[str, Any] = {"valid": False, "reason": "", "n_points": 0}
     try:
-        ex = ex.resolve(points_in_patch(points, ex.patch)) if ex.auto_spacing else ex
-        grid = grid_points(points, ex.patch, roll=roll, pitch=pitch, min_points=min_points)
+        on_lattice = _lattice_extraction(points, ex)
+        if on_lattice is not None:
+            ex = on_lattice[0]
+            grid = grid_lattice(points, ex.patch, on_lattice[1], min_points=min_points)
+        else:
+            ex = ex.resolve(points_in_patch(points, ex.patch)) if ex.auto_spacing else ex
+            grid = grid_points(points, ex.patch, roll=roll, pitch=pitch, min_points=min_points)
     except RoughMapError as exc:
         row["reason"] = f"too few points: {exc}" if "points" in str(exc) else str(exc)
         return GriddedFrame(row, None, ex)
@@ -224,6 +235,9 @@ def _measured(
     if isinstance(lon, PatchError):
         row["reason"] = str(lon)
         return row, None, None
+    if not lon.consistent:
+        row["reason"] = inconsistency(lon)
+        return row, None, None
     if isinstance(lat, PatchError):
         log.debug("no roughness across the track: %s", lat)
     assert isinstance(lon, PatchRoughness)
@@ -243,8 +257,23 @@ def _measured(
         fit_residual=lon.fit_residual,
         lateral_scale=lon.lateral_scale,
         omega_noise=lon.omega_noise,
+        band_rms=lon.band_rms,
+        centre_psd=lon.centre_psd,
+        omega_centre=lon.omega_centre,
+        rms_ratio=lon.rms_ratio,
+        curvature_z=lon.curvature_z,
     )
     return row, lon.omega, lon.psd
+
+
+def inconsistency(rough: PatchRoughness) -> str:
+    """Why a reading that fails its own consistency check
+    (:attr:`rough_map.psd.PatchRoughness.consistent`) is not reported."""
+    return (
+        f"the fit contradicts its patch: R {rough.R:.3g} m³/rad and w {rough.w:.2f} give "
+        f"{rough.rms_ratio * rough.band_rms * 1e3:.3g} mm rms over the band, the patch "
+        f"{rough.band_rms * 1e3:.3g} mm (more than 2x off)"
+    )
 
 
 def cloud_roughness(
@@ -260,6 +289,9 @@ def cloud_roughness(
     Unlike :func:`frame_features` this raises for a patch it cannot measure, and keeps the
     whole :class:`~rough_map.patch.GriddedPatch` and :class:`~rough_map.psd.PatchRoughness`
     (``rough-map features CLOUD`` shows them).
+
+    A cloud on a regular lattice (a height map exported as points) is read on its nodes,
+    at the lattice's step (:func:`rough_map.patch.find_lattice`), whatever the step asked.
 
     Parameters
     ----------
@@ -282,6 +314,10 @@ def cloud_roughness(
         Too few points in the patch, or a patch the estimator refuses.
     """
     asked = _as_extraction(extraction)
+    on_lattice = _lattice_extraction(points, asked)
+    if on_lattice is not None:
+        grid = grid_lattice(points, asked.patch, on_lattice[1], min_points=min_points)
+        return grid, _fit(grid, on_lattice[0], grid.heights)
     if not asked.auto_spacing:
         grid = grid_points(points, asked.patch, roll=roll, pitch=pitch, min_points=min_points)
         return grid, _fit(grid, asked, grid.heights)
@@ -305,6 +341,24 @@ def cloud_roughness(
     ex = dataclasses.replace(ex, patch=wide)
     grid = grid_points(points, wide, roll=roll, pitch=pitch, min_points=min_points)
     return grid, _fit(grid, ex, grid.heights)
+
+
+def _lattice_extraction(points: np.ndarray, ex: Extraction) -> tuple[Extraction, Lattice] | None:
+    """For a cloud on a regular lattice (:func:`rough_map.patch.find_lattice`), the fixed
+    extraction on the lattice and the lattice; None for any other cloud."""
+    lattice = find_lattice(points, ex.patch)
+    if lattice is None:
+        return None
+    patch = lattice_patch(ex.patch, lattice)
+    log.info(
+        "the cloud lies on a %.1f mm lattice: read on it, %d x %d nodes, band %.1f to %.1f rad/m",
+        patch.spacing * 1e3,
+        patch.n,
+        patch.n,
+        2 * math.pi / (patch.n * patch.spacing),
+        math.pi / patch.spacing,
+    )
+    return dataclasses.replace(ex, patch=patch, auto_spacing=False), lattice
 
 
 def _as_extraction(extraction: Extraction | PatchSpec | None) -> Extraction:

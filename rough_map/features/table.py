@@ -34,9 +34,20 @@ SMOOTH_COLUMNS = ("R_smooth", "w_smooth", "sigma_lnR_smooth", "sigma_w_smooth")
 #: (:attr:`rough_map.psd.PatchRoughness.se_lnR`).
 SE_COLUMNS = ("se_lnR", "se_w")
 #: What else a frame's reading says (:class:`rough_map.psd.PatchRoughness`): the ground's
-#: lateral scale (1 isotropic, 0 the same across the track; NaN when not read) and the
-#: wavenumber in rad/m up to which the ground stays above the sensor's noise floor.
-READING_COLUMNS = ("lateral_scale", "omega_noise")
+#: lateral scale (1 isotropic, 0 the same across the track, up to 5 rougher across than
+#: along; NaN when not read), the wavenumber in rad/m up to which the ground stays above
+#: the sensor's noise floor, the band's rms height in m and the fitted PSD at the band's
+#: log centre (roughness without extrapolation), the fit's rms over the band's, and the
+#: curvature of the log spectrum in its own standard errors (:mod:`rough_map.psd._shape`).
+READING_COLUMNS = (
+    "lateral_scale",
+    "omega_noise",
+    "band_rms",
+    "centre_psd",
+    "omega_centre",
+    "rms_ratio",
+    "curvature_z",
+)
 #: Columns a table written before they existed may lack (read as NaN).
 OPTIONAL_COLUMNS = frozenset(SMOOTH_COLUMNS + SE_COLUMNS + READING_COLUMNS)
 
@@ -104,6 +115,11 @@ COLUMN_UNITS = {
     "sigma_w_smooth": "",
     "lateral_scale": "",
     "omega_noise": "rad/m",
+    "band_rms": "m",
+    "centre_psd": "m³/rad",
+    "omega_centre": "rad/m",
+    "rms_ratio": "",
+    "curvature_z": "",
 }
 
 

@@ -17,12 +17,24 @@ the same square when the cloud has too few points per cell (``Extraction(auto_sp
 ``--spacing auto``); over ground that is the same across the track, :func:`pooled_rows`
 keeps the step and widens the cells across it instead.
 
-Layout: :mod:`rough_map.patch.spec` (:class:`PatchSpec`, the grid steps, :class:`Extraction`)
-and :mod:`rough_map.patch.grid` (:func:`grid_points`, :class:`GriddedPatch`).
+Lattices: a cloud whose points lie on a regular lattice (a height map exported as points)
+is read on that lattice, at its own step, with one node per cell (:func:`find_lattice`,
+:func:`grid_lattice`), not re-binned onto cells that misalign with it.
+
+Layout: :mod:`rough_map.patch.spec` (:class:`PatchSpec`, the grid steps, :class:`Extraction`),
+:mod:`rough_map.patch.lattice` (:class:`Lattice`) and :mod:`rough_map.patch.grid`
+(:func:`grid_points`, :func:`grid_lattice`, :class:`GriddedPatch`).
 """
 
 from rough_map.geometry import compensate_tilt
-from rough_map.patch.grid import GriddedPatch, check_points, extract_patch, grid_points
+from rough_map.patch.grid import (
+    GriddedPatch,
+    check_points,
+    extract_patch,
+    grid_lattice,
+    grid_points,
+)
+from rough_map.patch.lattice import Lattice, find_lattice, lattice_patch
 from rough_map.patch.spec import (
     AUTO_STEPS,
     DEFAULT_AHEAD,
@@ -49,12 +61,16 @@ __all__ = [
     "POOLED_POINTS_PER_CELL",
     "Extraction",
     "GriddedPatch",
+    "Lattice",
     "PatchSpec",
     "auto_spacing",
     "check_points",
     "compensate_tilt",
     "extract_patch",
+    "find_lattice",
+    "grid_lattice",
     "grid_points",
+    "lattice_patch",
     "points_in_patch",
     "pooled_rows",
     "spacing_ladder",

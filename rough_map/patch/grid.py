@@ -14,6 +14,7 @@ from rough_map._numeric import median
 from rough_map.errors import InputError, PatchError
 from rough_map.geometry import check_angle, levelling_rotation, rotation_matrix, transform_columns
 from rough_map.patch._params import check_bool, check_int, check_real
+from rough_map.patch.lattice import Lattice, lattice_patch
 from rough_map.patch.spec import PatchSpec, _as_cloud, _check_spec
 
 log = logging.getLogger(__name__)
@@ -52,6 +53,16 @@ class GriddedPatch:
         ``point_noise^2 * mean(1 / counts) * B / pi``.
     level_angle : float
         Tilt in rad of the patch plane that levelling removed (0 if none).
+    gridding : {"cell_mean", "point"}
+        How :func:`rough_map.psd.patch_roughness` should read these heights.
+        ``"cell_mean"`` (:func:`grid_points`): the mean of k points at random places in a
+        cell is, on average over where they fall, the mean of the surface over the cell,
+        for any k: the grid is the surface seen through a B x B box filter. Its scatter
+        about that box mean (the surface's variation within the cell and the sensor noise,
+        divided by k, less what the centroid correction removes) is independent from cell
+        to cell, a white floor that ``noise_psd`` estimates and the estimator subtracts.
+        ``"point"`` (:func:`grid_lattice`): each cell holds the one point on its centre, a
+        sample of the surface at the node.
     """
 
     heights: np.ndarray
@@ -61,6 +72,7 @@ class GriddedPatch:
     point_noise: float
     noise_psd: float
     level_angle: float = 0.0
+    gridding: str = "cell_mean"
 
     @property
     def fill_fraction(self) -> float:
@@ -72,21 +84,6 @@ class GriddedPatch:
         """Mean number of points in the filled cells."""
         filled = self.counts > 0
         return float(self.counts[filled].mean()) if filled.any() else 0.0
-
-    @property
-    def gridding(self) -> str:
-        """How :func:`rough_map.psd.patch_roughness` should read these heights: always
-        ``"cell_mean"``.
-
-        The mean of k points at random places in a cell is, on average over where they
-        fall, the mean of the surface over the cell, for any k: the grid is the surface
-        seen through a B x B box filter. Its scatter about that box mean (the surface's
-        variation within the cell and the sensor noise, divided by k, less what the
-        centroid correction removes) is independent from cell to cell, a white floor that
-        ``noise_psd`` estimates and the estimator subtracts. A grid of surface values at
-        the nodes (a synthetic or interpolated surface) is read with ``"point"`` instead.
-        """
-        return "cell_mean"
 
 
 def check_points(points: np.ndarray, name: str = "points") -> np.ndarray:
@@ -435,6 +432,26 @@ def _noise(moments: list, sums: tuple, gradient: tuple, spec: PatchSpec, stride:
     med = median(var_c)
     keep = var_c <= 50.0 * med if med > 0 else np.ones(var_c.shape, dtype=bool)
     return math.sqrt(max(float(np.sum(var_c[keep] * dof[keep]) / np.sum(dof[keep])), 0.0))
+
+
+def grid_lattice(
+    points: np.ndarray, spec: PatchSpec, lattice: Lattice, *, min_points: int = 100
+) -> GriddedPatch:
+    """The patch of a cloud on a regular lattice, read on the lattice: the patch moved onto
+    its nodes at its step (:func:`rough_map.patch.lattice.lattice_patch`), one node per
+    cell, NaN where a node is missing, ``gridding="point"``. Neither levelled nor
+    tilt-compensated: rotating the points would take them off the lattice (a height map
+    is already in its own frame), and the estimator removes each profile's trend.
+
+    Raises
+    ------
+    PatchError
+        Fewer than ``min_points`` nodes over the patch.
+    """
+    check_int("min_points", min_points, low=0, high=2**62, unit="points")
+    on = lattice_patch(spec, lattice)
+    grid = _grid(_as_cloud(points), on, None, None, min_points, False)
+    return dataclasses.replace(grid, gridding="point")
 
 
 def extract_patch(

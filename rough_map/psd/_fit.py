@@ -28,6 +28,7 @@ from rough_map.psd._noise import floor_correction, gap_filled_floor, noise_reach
 from rough_map.psd._options import Options
 from rough_map.psd._regression import Projections, fit_plan, project, project_masked
 from rough_map.psd._result import PatchRoughness
+from rough_map.psd._shape import shape_statistics
 from rough_map.psd._uncertainty import standard_errors
 
 
@@ -143,10 +144,12 @@ def fit(
     noise = np.full(p.shape[0], math.nan) if floors is None else floors
     shift: np.ndarray
     floor_or_zero: np.ndarray = np.zeros((1, n_bins))
+    log_gain: np.ndarray | float = 0.0  # of the terrain's power through the gap filling
     reach = np.full(p.shape[0], math.nan)  # omega_noise of each patch
     if opt.subtract_noise:
         floor, gain = gap_filled_floor(noise, filled, n_bins, seg_n, spacing)
         floor_or_zero = floor
+        log_gain = np.log(gain)
         shift, weights, short = floor_correction(mean_psd, floor, plan.mask)
         reach = noise_reach(shift, plan.mask, spectra.omega)
         shift = shift - np.log(gain)
@@ -182,15 +185,21 @@ def fit(
     wm = wv.mean(axis=1)
     bm = b.mean(axis=1)
     adj = shift - bias if unbiased else shift
+    leak: np.ndarray | float = 0.0
     if unbiased:
-        adj = adj - leakage(seg_n, opt.window, wm, opt.gridding)[:, :n_bins]
+        leak = leakage(seg_n, opt.window, wm, opt.gridding)[:, :n_bins]
+        adj = adj - leak
     # Residual of the patch-mean log spectrum about the patch line (shape of the spectrum).
     mean_log = logp.mean(axis=1, dtype=np.float64) + adj
     resid = np.where(pr.mask, mean_log - bm[:, None] - wm[:, None] * plan.x[None, :], 0.0)
     fit_res = np.sqrt((resid * resid).sum(axis=1) / pr.mask.sum(axis=1))
+    # The band's own power (arithmetic over the profiles) with the same corrections.
+    correction = log_gain + leak + (0.0 if lateral is None else lateral)
+    power = np.maximum(mean_psd - floor_or_zero, 0.0) * np.exp(-correction)
+    shape = shape_statistics(mean_log, pr.mask, plan.x, (bm, wm), power, spectra.omega, opt.omega0)
     # Standard errors of the patch means, with the correlation between profiles.
     se = standard_errors(b, wv, wm, pr, opt, seg_n=seg_n, bias=bias, scale=rows_scale)
-    read = (scale, reach)
+    read = (scale, reach, shape)
     return list(
         _results(
             spectra, opt, b, wv, mean_psd, pr.mask, fit_res, noise, spacing, n, n_dropped, se, read
@@ -253,13 +262,14 @@ def _results(
     n: int,
     n_dropped: int,
     se: tuple[np.ndarray, np.ndarray],
-    read: tuple[np.ndarray, np.ndarray],
+    read: tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]],
 ) -> list[PatchRoughness]:
     """One :class:`PatchRoughness` per patch from the per-profile intercepts ``b`` and
     slopes ``wv`` (patches, profiles), the standard errors ``se`` of their means, and
-    ``read``: the lateral scale (NaN: not read) and ``omega_noise`` in rad/m (NaN: no floor
-    subtracted) of each patch."""
-    scale, reach = read
+    ``read``: the lateral scale (NaN: not read), ``omega_noise`` in rad/m (NaN: no floor
+    subtracted) and the band statistics (:func:`rough_map.psd._shape.shape_statistics`)
+    of each patch."""
+    scale, reach, shape = read
     n_patch, m = b.shape
     wm = wv.mean(axis=1)
     bm = b.mean(axis=1)
@@ -293,6 +303,7 @@ def _results(
             omega0=opt.omega0,
             lateral_scale=float(scale[i]),
             omega_noise=float(reach[i]),
+            **{k: float(v[i]) for k, v in shape.items()},
         )
         for i in range(n_patch)
     ]

@@ -7,6 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rough_map.psd._shape import CURVED_Z, RMS_FACTOR
+
 
 @dataclass(frozen=True, eq=False)
 class PatchRoughness:
@@ -71,6 +73,27 @@ class PatchRoughness:
         not the sensor, dominates. Above it the ordinates still enter the fit with small
         weights. 0 where the noise dominates from the first ordinate of the fit on; NaN
         when no floor was subtracted.
+    band_rms : float
+        Rms height in m over the ordinates fitted, from the patch-mean spectrum less the
+        noise floor, corrected for the detrend, the window and the cells: a roughness that
+        needs no extrapolation (:mod:`rough_map.psd._shape`).
+    rms_ratio : float
+        The rms that the fitted ``R Omega^w`` gives over the same ordinates, over
+        ``band_rms``: within 1/2 to 2 (:attr:`consistent`) when the fit describes the
+        patch's power.
+    centre_psd : float
+        The fitted PSD in m^3/rad at ``omega_centre``: R without the extrapolation.
+    omega_centre : float
+        The band's log centre in rad/m: the geometric mean of its first and last ordinate
+        fitted.
+    curvature : float
+        Quadratic term of the patch-mean log spectrum in ln Omega over the band, per
+        (ln rad/m)^2: negative where the spectrum falls ever faster (smooth ground, a block
+        scale), positive where it flattens (a noise floor left in).
+    curvature_z : float
+        ``curvature`` over its standard error from the ordinates' scatter: beyond
+        +-:data:`rough_map.psd._shape.CURVED_Z` the log spectrum is not a line over the
+        band (:attr:`power_law` is False) and R at ``omega0`` depends on the fit.
     """
 
     R: float
@@ -97,13 +120,31 @@ class PatchRoughness:
     omega0: float
     lateral_scale: float = math.nan
     omega_noise: float = math.nan
+    band_rms: float = math.nan
+    rms_ratio: float = math.nan
+    centre_psd: float = math.nan
+    omega_centre: float = math.nan
+    curvature: float = math.nan
+    curvature_z: float = math.nan
+
+    @property
+    def consistent(self) -> bool:
+        """The fit reproduces the patch's band rms within a factor of
+        :data:`~rough_map.psd._shape.RMS_FACTOR` (2)."""
+        return bool(1.0 / RMS_FACTOR <= self.rms_ratio <= RMS_FACTOR)
+
+    @property
+    def power_law(self) -> bool:
+        """The log spectrum is a line over the band, within
+        :data:`~rough_map.psd._shape.CURVED_Z` standard errors of its curvature."""
+        return bool(abs(self.curvature_z) <= CURVED_Z)
 
     @property
     def sigma_lnR(self) -> float:
         """Standard deviation of ln R_i (dimensionless)."""
         return self.sigma_R / self.R if self.R > 0 else math.nan
 
-    def as_dict(self) -> dict[str, float | int | str]:
+    def as_dict(self) -> dict[str, float | int | str | bool]:
         """Scalar fields, for tables and JSON."""
         return {
             "R": self.R,
@@ -121,4 +162,12 @@ class PatchRoughness:
             "method": self.method,
             "lateral_scale": self.lateral_scale,
             "omega_noise": self.omega_noise,
+            "band_rms": self.band_rms,
+            "rms_ratio": self.rms_ratio,
+            "consistent": self.consistent,
+            "centre_psd": self.centre_psd,
+            "omega_centre": self.omega_centre,
+            "curvature": self.curvature,
+            "curvature_z": self.curvature_z,
+            "power_law": self.power_law,
         }
