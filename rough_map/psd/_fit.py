@@ -277,33 +277,39 @@ def _results(
     sb = b.std(axis=1, ddof=1) if m > 1 else np.full(n_patch, np.nan)
     sw = wv.std(axis=1, ddof=1) if m > 1 else np.full(n_patch, np.nan)
     letters = iso8608.iso_class(R)
+    # Python floats up front (tolist): one conversion per array, not per element.
+    r_, wm_, sb_, sw_ = R.tolist(), wm.tolist(), sb.tolist(), sw.tolist()
+    se_b, se_w, rms = se[0].tolist(), se[1].tolist(), np.asarray(spectra.rms).tolist()
+    res, noise_, scale_, reach_ = fit_res.tolist(), noise.tolist(), scale.tolist(), reach.tolist()
+    shape_ = {k: np.asarray(v, dtype=float).tolist() for k, v in shape.items()}
+    profile_r = np.exp(b)
     return [
         PatchRoughness(
-            R=float(R[i]),
-            w=float(wm[i]),
-            sigma_R=float(R[i] * sb[i]),
-            sigma_w=float(sw[i]),
-            se_lnR=float(se[0][i]),
-            se_w=float(se[1][i]),
-            rms=float(spectra.rms[i]),
+            R=r_[i],
+            w=wm_[i],
+            sigma_R=r_[i] * sb_[i],
+            sigma_w=sw_[i],
+            se_lnR=se_b[i],
+            se_w=se_w[i],
+            rms=rms[i],
             iso_class=str(letters[i]),
             omega=spectra.omega,
             psd=mean_psd[i],
-            profile_R=np.exp(b[i]),
+            profile_R=profile_r[i],
             profile_w=wv[i],
             n_profiles=m,
             n_dropped=n_dropped,
             spacing=spacing,
             length=n * spacing,
             fit_mask=mask[i],
-            fit_residual=float(fit_res[i]),
-            noise_psd=float(noise[i]),
+            fit_residual=res[i],
+            noise_psd=noise_[i],
             noise_subtracted=bool(opt.subtract_noise),
             method=opt.method,
             omega0=opt.omega0,
-            lateral_scale=float(scale[i]),
-            omega_noise=float(reach[i]),
-            **{k: float(v[i]) for k, v in shape.items()},
+            lateral_scale=scale_[i],
+            omega_noise=reach_[i],
+            **{k: v[i] for k, v in shape_.items()},
         )
         for i in range(n_patch)
     ]

@@ -388,8 +388,7 @@ def _effects(
     each patch's waviness and lateral scale: linear between the two waviness nodes around
     ``wm`` and between the scale nodes of ``at``, contracted only at those."""
     flat = _pair_products(v)
-    rows = np.arange(wm.size) if flat.shape[0] > 1 else np.zeros(wm.size, dtype=int)
-    flat = flat[rows]
+    shared = flat.shape[0] == 1  # one row of weights for all patches
     pos = (np.clip(wm, W_NODES[0], W_NODES[-1]) - W_NODES[0]) / (W_NODES[1] - W_NODES[0])
     i = np.minimum(pos.astype(int), W_NODES.size - 2)
     frac = pos - i
@@ -400,8 +399,12 @@ def _effects(
         pairs = [tables(float(A_NODES[node]), int(j)) for j in need]
         t0 = np.stack([t for t, _ in pairs])
         tw = np.stack([t for _, t in pairs])
-        lo, q_lo = _contract(flat, t0[lo_at], tw[lo_at])
-        hi, q_hi = _contract(flat, t0[hi_at], tw[hi_at])
+        if shared:  # the shared row against each node's tables once, then per patch
+            d_at, q_at = _contract(flat, t0, tw)
+            lo, q_lo, hi, q_hi = d_at[lo_at], q_at[lo_at], d_at[hi_at], q_at[hi_at]
+        else:
+            lo, q_lo = _contract(flat, t0[lo_at], tw[lo_at])
+            hi, q_hi = _contract(flat, t0[hi_at], tw[hi_at])
         d_node, q_node = (1 - frac) * lo + frac * hi, (1 - frac) * q_lo + frac * q_hi
         if len(at) == 1:  # one node for all patches: its numbers, with no arithmetic
             return d_node, q_node

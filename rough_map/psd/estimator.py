@@ -32,7 +32,7 @@ from rough_map.psd._spectra import (
 log = logging.getLogger(__name__)
 
 #: Heights per chunk of a batch (patches x profiles x samples), to stay in cache.
-_CHUNK_CELLS = 400_000
+_CHUNK_CELLS = 800_000
 
 
 def patch_roughness(
