@@ -1,5 +1,6 @@
 """The estimator of section 4: known answers, the synthesis round trip, gaps, bad input."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -100,6 +101,20 @@ def test_single_and_batch_agree(shape):
         for other in (single, part):
             assert (other.R, other.w, other.rms) == (batch[k].R, batch[k].w, batch[k].rms)
             assert np.array_equal(other.psd, batch[k].psd)
+
+
+def test_results_built_fast_are_the_constructors():
+    """``PatchRoughness.from_fields`` (the estimator's constructor) makes what the
+    dataclass's own would, and refuses a missing or unknown field as it does."""
+    r = psd.patch_roughness(iso8608.synthesize_surface((N, N), B, "D", -2.1, seed=2), B)
+    values = {f.name: getattr(r, f.name) for f in dataclasses.fields(r)}
+    fast, slow = psd.PatchRoughness.from_fields(values), psd.PatchRoughness(**values)
+    assert fast.as_dict() == slow.as_dict() == r.as_dict()
+    assert np.array_equal(fast.psd, slow.psd) and np.array_equal(fast.fit_mask, r.fit_mask)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        fast.R = 1.0
+    with pytest.raises(TypeError, match=r"missing \['w'\], unknown \['x'\]"):
+        psd.PatchRoughness.from_fields({**{k: v for k, v in values.items() if k != "w"}, "x": 1})
 
 
 def test_uncertainty_is_the_profile_spread():

@@ -276,40 +276,39 @@ def _results(
     R = np.exp(bm)
     sb = b.std(axis=1, ddof=1) if m > 1 else np.full(n_patch, np.nan)
     sw = wv.std(axis=1, ddof=1) if m > 1 else np.full(n_patch, np.nan)
-    letters = iso8608.iso_class(R)
+    letters = np.asarray(iso8608.iso_class(R)).tolist()
     # Python floats up front (tolist): one conversion per array, not per element.
-    r_, wm_, sb_, sw_ = R.tolist(), wm.tolist(), sb.tolist(), sw.tolist()
-    se_b, se_w, rms = se[0].tolist(), se[1].tolist(), np.asarray(spectra.rms).tolist()
-    res, noise_, scale_, reach_ = fit_res.tolist(), noise.tolist(), scale.tolist(), reach.tolist()
-    shape_ = {k: np.asarray(v, dtype=float).tolist() for k, v in shape.items()}
-    profile_r = np.exp(b)
+    per_patch = {
+        "R": R.tolist(),
+        "w": wm.tolist(),
+        "sigma_R": (R * sb).tolist(),
+        "sigma_w": sw.tolist(),
+        "se_lnR": se[0].tolist(),
+        "se_w": se[1].tolist(),
+        "rms": np.asarray(spectra.rms, dtype=float).tolist(),
+        "iso_class": [str(c) for c in letters],
+        "psd": list(mean_psd),
+        "profile_R": list(np.exp(b)),
+        "profile_w": list(wv),
+        "fit_mask": list(mask),
+        "fit_residual": fit_res.tolist(),
+        "noise_psd": noise.tolist(),
+        "lateral_scale": scale.tolist(),
+        "omega_noise": reach.tolist(),
+        **{k: np.asarray(v, dtype=float).tolist() for k, v in shape.items()},
+    }
+    common = {
+        "omega": spectra.omega,
+        "n_profiles": m,
+        "n_dropped": n_dropped,
+        "spacing": spacing,
+        "length": n * spacing,
+        "noise_subtracted": bool(opt.subtract_noise),
+        "method": opt.method,
+        "omega0": opt.omega0,
+    }
+    columns = list(per_patch.items())
     return [
-        PatchRoughness(
-            R=r_[i],
-            w=wm_[i],
-            sigma_R=r_[i] * sb_[i],
-            sigma_w=sw_[i],
-            se_lnR=se_b[i],
-            se_w=se_w[i],
-            rms=rms[i],
-            iso_class=str(letters[i]),
-            omega=spectra.omega,
-            psd=mean_psd[i],
-            profile_R=profile_r[i],
-            profile_w=wv[i],
-            n_profiles=m,
-            n_dropped=n_dropped,
-            spacing=spacing,
-            length=n * spacing,
-            fit_mask=mask[i],
-            fit_residual=res[i],
-            noise_psd=noise_[i],
-            noise_subtracted=bool(opt.subtract_noise),
-            method=opt.method,
-            omega0=opt.omega0,
-            lateral_scale=scale_[i],
-            omega_noise=reach_[i],
-            **{k: v[i] for k, v in shape_.items()},
-        )
+        PatchRoughness.from_fields({**common, **{k: v[i] for k, v in columns}})
         for i in range(n_patch)
     ]

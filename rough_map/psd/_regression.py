@@ -32,8 +32,9 @@ class FitPlan:
         Mean of ``x`` over the mask and ``sum(xc^2)``.
     xc, avg : ndarray
         Centred ``x`` and the averaging weights (0 outside the mask).
-    proj : ndarray, shape (bins, 2), float32
-        ``[xc, avg]``, for one matrix product with float32 log spectra.
+    proj : ndarray, shape (2, bins), float32
+        ``xc`` and ``avg`` as contiguous rows, for einsum's row loop on float32 log
+        spectra.
     leak_x, leak_a : ndarray, shape (len(W_GRID),)
         Projections of the leakage table on ``xc`` and ``avg``.
     """
@@ -67,7 +68,7 @@ def fit_plan(
     xc = (x - xm) * wts
     sxx = float(xc @ xc)
     avg = wts / cnt
-    proj = np.stack([xc, avg], axis=1).astype(np.float32)
+    proj = np.stack([xc, avg]).astype(np.float32)
     table = leakage_table(seg_n, window, gridding)[:, :n_bins]
     leak_x, leak_a = table @ xc, table @ avg
     frozen(mask, x, xc, avg, proj, leak_x, leak_a)
@@ -108,15 +109,17 @@ class Projections:
 def project(logp: np.ndarray, plan: FitPlan) -> Projections:
     """Projections with the plan's mask for every patch (float32 dot products)."""
     n_patch, m, n_bins = logp.shape
-    proj_all = _row_dot(logp.reshape(-1, 1, n_bins), plan.proj.T).astype(float)
+    rows = logp.reshape(-1, n_bins)
+    # einsum's loop along each row (as in _row_dot, the sum does not depend on the stack).
+    yx, ym = (np.einsum("ij,j->i", rows, v).astype(float) for v in plan.proj)
     return Projections(
         mask=np.broadcast_to(plan.mask, (n_patch, n_bins)),
         xm=np.full(n_patch, plan.xm),
         sxx=np.full(n_patch, plan.sxx),
         xc=plan.xc[None, :],
         avg=plan.avg[None, :],
-        yx=proj_all[:, 0].reshape(n_patch, m),
-        ym=proj_all[:, 1].reshape(n_patch, m),
+        yx=yx.reshape(n_patch, m),
+        ym=ym.reshape(n_patch, m),
         leak_x=np.broadcast_to(plan.leak_x, (n_patch, plan.leak_x.size)),
         leak_a=np.broadcast_to(plan.leak_a, (n_patch, plan.leak_a.size)),
     )

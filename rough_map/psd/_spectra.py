@@ -124,13 +124,16 @@ def _log_bias(window: str, nperseg: int, noverlap: int, n: int) -> float:
 
 
 @table_cache(32)
-def _fast_plan(n: int, window: str) -> tuple[np.ndarray, np.ndarray, float]:
-    """float32 window, detrend basis, and density scale."""
+def _fast_plan(n: int, window: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """float32 mean weights ``1 / n``, unit linear trend (orthogonal to the mean), window,
+    and density scale: contiguous vectors, which einsum's row loop reads three times
+    faster than the columns of the (n, 2) basis."""
     win, basis, wss = hann_plan(n, window)
+    mean32 = np.full(n, 1.0 / n, dtype=np.float32)
+    slope32 = np.ascontiguousarray(basis[:, 1], dtype=np.float32)
     win32 = win.astype(np.float32)
-    basis32 = basis.astype(np.float32)
-    frozen(win32, basis32)
-    return win32, basis32, 1.0 / (math.pi * wss)
+    frozen(mean32, slope32, win32)
+    return mean32, slope32, win32, 1.0 / (math.pi * wss)
 
 
 def detrended_dft(
@@ -138,16 +141,17 @@ def detrended_dft(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Density-scaled DFT of the detrended, windowed finite profiles (rows).
 
-    Each profile is detrended by projection on an orthonormal linear basis, then windowed.
-    Computed in float32 after removing one reference height per patch, which keeps about
-    1e-6 relative accuracy. Returns (omega in rad/m, the ordinates k = 1 ... n // 2 of the
-    DFT scaled so that their squared modulus is the one-sided PSD in m^3/rad (but for the
-    halving of an even length's last ordinate), shape ``h.shape[:-1] + (n // 2,)``, and the
-    detrended sum of squares per profile in m^2).
+    Each profile is detrended (its mean, then its projection on the unit linear trend,
+    which is orthogonal to the mean), then windowed. Computed in float32 after removing
+    one reference height per patch, which keeps about 1e-6 relative accuracy. Returns
+    (omega in rad/m, the ordinates k = 1 ... n // 2 of the DFT scaled so that their
+    squared modulus is the one-sided PSD in m^3/rad (but for the halving of an even
+    length's last ordinate), shape ``h.shape[:-1] + (n // 2,)``, and the detrended sum of
+    squares per profile in m^2).
     """
     shape = h.shape
     n = shape[-1]
-    win, basis, scale = _fast_plan(n, window)
+    mean_w, slope, win, scale = _fast_plan(n, window)
     # Non-finite cells are allowed through here: the caller finds them in ``ss``.
     with np.errstate(invalid="ignore", over="ignore"):
         ref = h[..., :1, :].mean(axis=-1, keepdims=True) if h.ndim > 1 else h[:1].mean()
@@ -157,13 +161,9 @@ def detrended_dft(
         # Row by row (einsum's own loop along each row), never a matrix product, whose
         # order of summation depends on how many rows are stacked: a profile's spectrum
         # must not depend on the batch it came in.
-        coef0 = np.einsum("ij,j->i", x, basis[:, 0])
-        coef1 = np.einsum("ij,j->i", x, basis[:, 1])
-        # Detrend in space (real float32 passes), then window and transform: cheaper than
-        # subtracting the complex spectra of the windowed basis, and the sum of squares
-        # of the detrended profile is taken directly, with no cancellation.
-        x -= coef0[:, None] * basis[:, 0]
-        x -= coef1[:, None] * basis[:, 1]
+        x -= np.einsum("ij,j->i", x, mean_w)[:, None]  # a broadcast pass, no temporary
+        x -= np.einsum("ij,j->i", x, slope)[:, None] * slope
+        # The sum of squares of the detrended profile itself: no cancellation.
         ss = np.einsum("ij,ij->i", x, x)
         # Fold the density scale into the window (one pass less): |c X|^2 = c^2 |X|^2.
         x *= win * np.float32(math.sqrt(scale * spacing))
@@ -172,12 +172,15 @@ def detrended_dft(
     return omega, spec.reshape(*shape[:-1], spec.shape[-1]), ss.reshape(shape[:-1])
 
 
-def power(spec: np.ndarray, n: int) -> np.ndarray:
+def power(spec: np.ndarray, n: int, overwrite: bool = False) -> np.ndarray:
     """One-sided PSD in m^3/rad of the ordinates of :func:`detrended_dft` (profile length
-    ``n``)."""
+    ``n``); with ``overwrite``, ``spec`` is used as scratch (and no longer holds the
+    ordinates)."""
+    # Squares of the float view (one contiguous pass), then re^2 + im^2.
+    v = spec.view(spec.real.dtype)
     with np.errstate(invalid="ignore", over="ignore"):
-        p = spec.real * spec.real
-        p += spec.imag * spec.imag
+        sq = np.square(v, out=v if overwrite else None)
+        p = sq[..., 0::2] + sq[..., 1::2]
     if n % 2 == 0:
         p[..., -1] *= 0.5
     return p
@@ -209,7 +212,7 @@ def periodogram(
     :func:`detrended_dft`.
     """
     omega, spec, ss = detrended_dft(h, spacing, window)
-    return omega, power(spec, h.shape[-1]), ss
+    return omega, power(spec, h.shape[-1], overwrite=True), ss
 
 
 def spectrum(

@@ -64,7 +64,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -348,6 +348,8 @@ def standard_errors(
     alpha = equivalent_alpha(bias)
     tables = functools.partial(_effect_tables_at, seg_n, opt.window, opt.gridding, alpha, m)
     at = _scale_weights(n_patch, scale)
+    if xc.shape[0] == 1 and (sxx == sxx[0]).all() and (xm == xm[0]).all():
+        xm, sxx = xm[:1], sxx[:1]  # one fit for all patches: one row of weights
     c = xc / sxx[:, None]  # weights of w on the log ordinates: (patches or 1, K)
     a = avg if fixed else avg - xm[:, None] * c
     se_b = np.sqrt(_variance(b.var(axis=1, ddof=1), *_effects(a, wm, at, tables), m))
@@ -381,14 +383,16 @@ def _effects(
     v: np.ndarray,
     wm: np.ndarray,
     at: dict[int, np.ndarray],
-    tables: Callable[[float, int], tuple[np.ndarray, np.ndarray]],
+    tables: functools.partial[tuple[np.ndarray, np.ndarray]],
 ) -> tuple[np.ndarray, np.ndarray]:
     """The design effect ``d`` and the model's variance ``q0`` of one profile's statistic
     ``sum_k v_k ln P_ik`` (``v``: one row per patch, or one for all), each (patches,), at
     each patch's waviness and lateral scale: linear between the two waviness nodes around
-    ``wm`` and between the scale nodes of ``at``, contracted only at those."""
-    flat = _pair_products(v)
-    shared = flat.shape[0] == 1  # one row of weights for all patches
+    ``wm`` and between the scale nodes of ``at``, contracted only at those. ``tables`` is
+    :func:`_effect_tables_at` with its geometry bound."""
+    shared = v.shape[0] == 1  # one row of weights for all patches
+    flat = None if shared else _pair_products(v)
+    key = np.ascontiguousarray(v, dtype=float).tobytes() if shared else b""
     pos = (np.clip(wm, W_NODES[0], W_NODES[-1]) - W_NODES[0]) / (W_NODES[1] - W_NODES[0])
     i = np.minimum(pos.astype(int), W_NODES.size - 2)
     frac = pos - i
@@ -396,13 +400,15 @@ def _effects(
     lo_at, hi_at = np.searchsorted(need, i), np.searchsorted(need, i + 1)
     d = q = 0.0
     for node, weight in at.items():
-        pairs = [tables(float(A_NODES[node]), int(j)) for j in need]
-        t0 = np.stack([t for t, _ in pairs])
-        tw = np.stack([t for _, t in pairs])
-        if shared:  # the shared row against each node's tables once, then per patch
-            d_at, q_at = _contract(flat, t0, tw)
+        scale = float(A_NODES[node])
+        if flat is None:  # the shared row's numbers at each node, computed once a process
+            dq = np.array([_shared_effect(key, tables.args, scale, int(j)) for j in need])
+            d_at, q_at = dq[:, 0], dq[:, 1]
             lo, q_lo, hi, q_hi = d_at[lo_at], q_at[lo_at], d_at[hi_at], q_at[hi_at]
         else:
+            pairs = [tables(scale, int(j)) for j in need]
+            t0 = np.stack([t for t, _ in pairs])
+            tw = np.stack([t for _, t in pairs])
             lo, q_lo = _contract(flat, t0[lo_at], tw[lo_at])
             hi, q_hi = _contract(flat, t0[hi_at], tw[hi_at])
         d_node, q_node = (1 - frac) * lo + frac * hi, (1 - frac) * q_lo + frac * q_hi
@@ -411,6 +417,19 @@ def _effects(
         d = d + weight * d_node
         q = q + weight * q_node
     return np.asarray(d), np.asarray(q)
+
+
+@table_cache(4096)
+def _shared_effect(
+    key: bytes, geometry: tuple[Any, ...], scale: float, node: int
+) -> tuple[float, float]:
+    """:func:`_contract` of the one row of weights whose float64 bytes are ``key`` at one
+    node of the tables (``geometry``: the leading arguments of :func:`_effect_tables_at`)."""
+    v = np.frombuffer(key)[None, :]
+    seg_n, window, gridding, alpha, m = geometry
+    t0, tw = _effect_tables_at(seg_n, window, gridding, alpha, m, scale, node)
+    d, q0 = _contract(_pair_products(v), t0[None, :], tw[None, :])
+    return float(d[0]), float(q0[0])
 
 
 def _pair_products(v: np.ndarray) -> np.ndarray:

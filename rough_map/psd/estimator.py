@@ -346,9 +346,9 @@ def _estimate(
         cross = None
         if fast:
             omega, dft, ss = detrended_dft(part, spacing, opt.window)
-            p = power(dft, n)
             if opt.gridding == "cell_mean":
                 cross = adjacent_cross(dft, n)
+            p = power(dft, n, overwrite=True)
             if check:
                 finite = np.isfinite(ss).all(axis=1)
                 if not finite.all():
