@@ -35,6 +35,7 @@ from rough_map.export.labels import write_labels
 from rough_map.export.png import write_pngs
 from rough_map.features import (
     FeatureTable,
+    FramePass,
     FrameStream,
     features_metadata_path,
     frame_jobs,
@@ -226,8 +227,9 @@ def analyse(
         extraction = Extraction.from_dict(
             terrain_model.extraction_ if terrain_model is not None else None
         )
-        if frames is not None and frames.settings.extraction != extraction:
-            raise ModelError(f"{model}: {_card_differs(frames.settings.extraction, extraction)}")
+        reading = extraction if terrain_model is None else terrain_model.reading()
+        if frames is not None and (frames.settings.asked or frames.settings.extraction) != reading:
+            raise ModelError(f"{model}: {_card_differs(frames.settings, reading)}")
         mapper = OnlineMapper(
             terrain_model,
             resolution=resolution,
@@ -236,7 +238,9 @@ def analyse(
             extraction=extraction,
             name=traverse.name,
         )
-        _frame_pass(traverse, mapper, features, n_jobs, progress, roughness == "raw", frames)
+        _frame_pass(
+            traverse, mapper, reading, features, n_jobs, progress, roughness == "raw", frames
+        )
     except BaseException:
         if frames is not None:
             frames.close()
@@ -276,18 +280,20 @@ def analyse(
 def _frame_pass(
     traverse: Traverse,
     mapper: OnlineMapper,
+    reading: Extraction,
     features: FeatureTable | None,
     n_jobs: int,
     progress: bool,
     roughness: bool = True,
     frames: FrameStream | None = None,
 ) -> None:
-    """Every frame through the mapper: features (unless given) and heights, classes later;
-    ``frames``: the pass, already started (checked to be this one; its jobs are used)."""
+    """Every frame through the mapper: features (unless given, read as ``reading`` says)
+    and heights, classes later; ``frames``: the pass, already started (checked to be this
+    one; its jobs are used)."""
     jobs = frames.jobs if frames is not None else frame_jobs(traverse)
     settings = traverse_pass(
         traverse,
-        mapper.extraction,
+        reading,
         height_resolution=mapper.tiles.resolution,
         features=features is None,
     )
@@ -309,9 +315,11 @@ def _frame_pass(
         mapper.add(out, jobs[out.index].pose, classes=False, roughness=roughness)
 
 
-def _card_differs(card: Extraction, model: Extraction) -> str:
-    """Why a model's card is refused: the settings where its extraction differs."""
-    a, b = card.to_dict(), model.to_dict()
+def _card_differs(started: FramePass, model: Extraction) -> str:
+    """Why a model's card is refused: the settings where the extraction the frames started
+    on (from the card) differs from the model's."""
+    card = started.asked or started.extraction
+    a, b = (replace(x, auto_spacing=False).to_dict() for x in (card, model))
     diff = ", ".join(
         f"{k} {a.get(k)!r} against {b.get(k)!r}" for k in a | b if a.get(k) != b.get(k)
     )

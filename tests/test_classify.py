@@ -306,12 +306,13 @@ def test_feature_names_documented() -> None:
 
 
 def test_exclude_and_invalid_rows() -> None:
-    X = power_law_matrix(n=3)
-    X[1, len(INPUT_SCALARS) + 5] = np.nan  # a frame without a valid patch
+    X = power_law_matrix(n=4)
+    X[1, len(INPUT_SCALARS) :] = np.nan  # a frame without a valid patch
+    X[3, len(INPUT_SCALARS) + 5] = np.nan  # an ordinate a coarser grid lacks: left out
     sf = SpectralFeatures(omega=OMEGA, exclude=("sigma_lnR", "sigma_w")).fit(X)
     out = sf.transform(X)
     assert "sigma_w" not in sf.get_feature_names_out()
-    assert np.isnan(out[1]).all() and np.isfinite(out[[0, 2]]).all()
+    assert np.isnan(out[1]).all() and np.isfinite(out[[0, 2, 3]]).all()
 
 
 @pytest.mark.parametrize(

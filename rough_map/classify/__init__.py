@@ -64,6 +64,7 @@ from rough_map.classify.spectral import (
     SpectralFeatures,
     default_omega,
     feature_matrix,
+    on_model_grid,
 )
 from rough_map.classify.training import (
     CLASSIFIERS,
@@ -98,6 +99,7 @@ __all__ = [
     "load_terrain_model",
     "make_classifier",
     "model_paths",
+    "on_model_grid",
     "read_card",
     "roughness_level",
     "save_terrain_model",

@@ -35,7 +35,7 @@ from rough_map.classify.evidence import (
     frame_steps,
 )
 from rough_map.classify.levels import RoughnessLevels, roughness_level
-from rough_map.classify.spectral import feature_matrix
+from rough_map.classify.spectral import INPUT_SCALARS, feature_matrix
 from rough_map.classify.training import (
     CLASSIFIERS,
     EXCLUDED_FEATURES,
@@ -47,7 +47,7 @@ from rough_map.classify.training import (
     training_hash,
     traverse_folds,
 )
-from rough_map.classify.validation import check_fitted, model_failures
+from rough_map.classify.validation import check_components, check_fitted, model_failures
 from rough_map.patch import Extraction
 
 log = logging.getLogger(__name__)
@@ -275,7 +275,7 @@ class TerrainModel(BaseEstimator):
             raise errors.InputError(
                 f"jitter_copies must be an integer >= 0; got {self.jitter_copies!r}"
             )
-        _check_components(self.path_filter, self.defects)
+        check_components(self.path_filter, self.defects)
         names = tuple(str(n) for n in self.level_names)
         thresholds = (
             tuple(float(v) for v in RoughnessLevels().values())
@@ -424,7 +424,7 @@ class TerrainModel(BaseEstimator):
         Parameters
         ----------
         table : FeatureTable
-            Features of one traverse, computed as ``extraction_`` says.
+            Features of one traverse, computed as :meth:`reading` says.
         mode : {"forward", "smooth", "viterbi"}, optional
             Filter mode; default the model's ``mode``.
 
@@ -469,13 +469,23 @@ class TerrainModel(BaseEstimator):
             defect=defect,
         )
 
+    def reading(self) -> Extraction:
+        """How the frames this model classifies are read: its ``extraction_``, with the
+        step chosen for each traverse's density from the model's own up
+        (:meth:`rough_map.patch.Extraction.any_density`); :meth:`raw_proba` maps a coarser
+        grid's spectrum onto the model's wavenumbers."""
+        self._check_fitted()
+        return Extraction.from_dict(self.extraction_).any_density()
+
     def raw_proba(self, table: Any) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
         """The classifier's class probabilities per frame, before the path filter.
 
         Parameters
         ----------
         table : FeatureTable
-            Features computed as ``extraction_`` says.
+            Features computed with the model's patch (:meth:`reading`): at its step, or a
+            coarser one for a sparse traverse, whose spectrum is mapped onto the model's
+            wavenumbers (:func:`rough_map.classify.on_model_grid`).
 
         Returns
         -------
@@ -487,13 +497,27 @@ class TerrainModel(BaseEstimator):
         Raises
         ------
         ModelError
-            The table's spectrum has other wavenumbers than the model's (another patch).
+            The table's wavenumbers are not on the model's patch (another patch size).
         """
         self._check_fitted()
-        self._check_omega(table)
         warn_other_rows(self.training_, table)
-        X, _ = feature_matrix(table)
-        valid = np.asarray(table.valid, dtype=bool) & np.isfinite(X).all(axis=1)
+        X, _ = feature_matrix(table, omega=self.omega_)
+        if len(table.omega) != self.omega_.size and len(X):
+            log.info(
+                "%s: spectrum read to %.0f rad/m (a %.1f mm grid), mapped onto the model's "
+                "%d wavenumbers to %.0f rad/m",
+                table.name,
+                float(table.omega[-1]),
+                1e3 * math.pi / float(table.omega[-1]),
+                self.omega_.size,
+                float(self.omega_[-1]),
+            )
+        n_scalars = len(INPUT_SCALARS)
+        valid = (
+            np.asarray(table.valid, dtype=bool)
+            & np.isfinite(X[:, :n_scalars]).all(axis=1)
+            & np.isfinite(X[:, n_scalars:]).any(axis=1)
+        )
         raw = np.full((len(X), len(self.classes_)), np.nan)
         if valid.any():
             cols = np.searchsorted(self.classes_, self.classifier_.classes_)
@@ -501,18 +525,6 @@ class TerrainModel(BaseEstimator):
             with model_failures(self, "classifier"):
                 raw[np.ix_(valid, cols)] = self.classifier_.predict_proba(X[valid])
         return raw, valid
-
-    def _check_omega(self, table: Any) -> None:
-        """Raise ModelError unless the table's wavenumbers are the model's."""
-        omega = np.asarray(table.omega, dtype=float)
-        if omega.shape != self.omega_.shape or not np.allclose(omega, self.omega_, rtol=1e-6):
-            patch = {k: self.extraction_.get(k) for k in ("size", "spacing")}
-            raise errors.ModelError(
-                f"traverse {table.name!r:.40}: its spectrum has {omega.size} wavenumbers from "
-                f"{omega[0] if omega.size else float('nan'):.3g} rad/m, the model expects "
-                f"{self.omega_.size} from {self.omega_[0]:.3g} rad/m; compute the features "
-                f"with the model's patch (m): {patch}"
-            )
 
     def _filter(
         self,
@@ -557,29 +569,6 @@ class TerrainModel(BaseEstimator):
                 self.defects,
             )
         return defect
-
-
-def _check_components(path_filter: Any, defects: Any) -> None:
-    """Raise InputError unless the components have the interface TerrainModel uses."""
-    if path_filter is not None:
-        methods = ("fit", "predict", "predict_proba", "set_params", "get_params")
-        missing = [m for m in methods if not callable(getattr(path_filter, m, None))]
-        params = path_filter.get_params() if not missing else {}
-        if missing or "mode" not in params:
-            raise errors.InputError(
-                "path_filter must be an estimator with fit, predict, predict_proba and a mode "
-                f"parameter (a rough_map.filter.PathFilter); got {path_filter!r}"
-            )
-        if params.get("inputs", "log_likelihood") != "log_likelihood":
-            raise errors.InputError(
-                "path_filter takes the log likelihoods of emission_log_likelihood: set "
-                f"inputs='log_likelihood'; got inputs={params['inputs']!r}"
-            )
-    if defects is not None and not callable(defects):
-        raise errors.InputError(
-            "defects must be None or a callable defects(R, distance) -> bool per frame (a "
-            f"rough_map.filter.IsolatedSpikes); got {defects!r}"
-        )
 
 
 def _training_summary(tables: Sequence[Any], frames: TrainingFrames) -> dict[str, Any]:

@@ -20,8 +20,16 @@ from sklearn.utils import Tags
 from rough_map import errors
 from rough_map.classify.validation import check_fitted, validate_frames
 from rough_map.patch import PatchSpec
+from rough_map.psd import grid_log_gain
 
-__all__ = ["FEATURE_DOC", "INPUT_SCALARS", "SpectralFeatures", "default_omega", "feature_matrix"]
+__all__ = [
+    "FEATURE_DOC",
+    "INPUT_SCALARS",
+    "SpectralFeatures",
+    "default_omega",
+    "feature_matrix",
+    "on_model_grid",
+]
 
 #: Scalar columns of a :class:`~rough_map.features.FeatureTable` that lead the input matrix
 #: of :class:`SpectralFeatures` (the log10 PSD bins follow), with their units.
@@ -57,7 +65,9 @@ FEATURE_DOC: dict[str, str] = {
 }
 
 
-def feature_matrix(table: Any) -> tuple[NDArray[np.float64], list[str]]:
+def feature_matrix(
+    table: Any, omega: ArrayLike | None = None
+) -> tuple[NDArray[np.float64], list[str]]:
     """The input matrix of :class:`SpectralFeatures` for every frame of a features table.
 
     Parameters
@@ -65,12 +75,15 @@ def feature_matrix(table: Any) -> tuple[NDArray[np.float64], list[str]]:
     table : FeatureTable
         Per-frame features of a traverse (:func:`rough_map.features.traverse_features` or
         :func:`rough_map.features.read_features`).
+    omega : array_like of float, optional
+        Wavenumbers in rad/m of a model's spectrum columns: the table's spectrum is mapped
+        onto them (:func:`on_model_grid`). Default the table's own.
 
     Returns
     -------
     X : ndarray, shape (n_frames, len(INPUT_SCALARS) + n_bins)
         The columns :data:`INPUT_SCALARS` (units as in the table: m^3/rad, m, ...) followed by
-        the patch-mean PSD as log10 of m^3/rad on ``table.omega``; NaN rows for invalid frames.
+        the patch-mean PSD as log10 of m^3/rad on ``omega``; NaN rows for invalid frames.
     names : list of str
         Column names: :data:`INPUT_SCALARS` then ``psd_01`` ...
 
@@ -78,14 +91,67 @@ def feature_matrix(table: Any) -> tuple[NDArray[np.float64], list[str]]:
     ------
     InputError
         The table lacks one of the columns.
+    ModelError
+        ``omega`` is another patch's (see :func:`on_model_grid`).
     """
     missing = [c for c in INPUT_SCALARS if c not in table.columns]
     if missing:
         raise errors.InputError(f"features table {table.name!r} lacks the columns {missing}")
     scalars = np.column_stack([np.asarray(table.columns[c], dtype=float) for c in INPUT_SCALARS])
-    X = np.hstack([scalars, np.asarray(table.log_psd, dtype=float)])
+    spectrum = (
+        np.asarray(table.log_psd, dtype=float) if omega is None else on_model_grid(table, omega)
+    )
+    X = np.hstack([scalars, spectrum])
     X[~np.asarray(table.valid, dtype=bool)] = np.nan
-    return X, [*INPUT_SCALARS, *table.spectrum_names()]
+    bins = [f"psd_{k:02d}" for k in range(1, spectrum.shape[1] + 1)]
+    return X, [*INPUT_SCALARS, *bins]
+
+
+def on_model_grid(table: Any, omega: ArrayLike) -> NDArray[np.float64]:
+    """log10 of the PSD in m^3/rad of each frame of ``table`` as the cell-mean grid of a
+    model, whose spectrum columns are at ``omega`` (rad/m), would have measured it:
+    shape (n_frames, len(omega)).
+
+    A table on the model's wavenumbers gives its own spectrum. A grid of another step over
+    the same patch (``spacing auto`` on a sparse cloud) has the same wavenumbers
+    ``2 pi k / L`` up to its own ``pi / B``: its ordinates go to the model's ``k``, less
+    what its grid did to them and plus what the model's grid would have
+    (:func:`rough_map.psd.grid_log_gain`, at each frame's w and lateral scale). The model's
+    wavenumbers above the table's band are NaN, which :class:`SpectralFeatures` leaves out
+    as it leaves out ordinates below the noise floor.
+
+    Raises
+    ------
+    ModelError
+        The table's wavenumbers are not multiples of the model's fundamental (another
+        patch size).
+    """
+    own = np.asarray(table.omega, dtype=float)
+    target = np.asarray(omega, dtype=float)
+    log_psd = np.asarray(table.log_psd, dtype=float)
+    if own.shape == target.shape and np.allclose(own, target, rtol=1e-6):
+        return log_psd
+    k = own / target[0] if target.size else own
+    if own.size < 2 or not np.allclose(k, np.arange(1, own.size + 1), rtol=1e-6):
+        raise errors.ModelError(
+            f"traverse {table.name!r:.40}: its spectrum has {own.size} wavenumbers from "
+            f"{own[0] if own.size else float('nan'):.3g} rad/m, not the multiples of the "
+            f"model's {target[0] if target.size else float('nan'):.3g} rad/m: the model was "
+            f"trained on a patch of {2 * np.pi / target[0] if target.size else 0:.3g} m; "
+            "compute the features with that patch size"
+        )
+    top = min(own.size, target.size)
+    cols = table.columns
+    w = np.asarray(cols["w"], dtype=float)
+    scale = (
+        np.asarray(cols["lateral_scale"], dtype=float) if "lateral_scale" in cols else w * np.nan
+    )
+    # Profile lengths in samples: pi / B at the last ordinate of an even length.
+    shift = grid_log_gain(2 * target.size, w, scale)[:, :top]
+    shift = shift - grid_log_gain(2 * own.size, w, scale)[:, :top]
+    out = np.full((len(log_psd), target.size), np.nan)
+    out[:, :top] = log_psd[:, :top] + shift / math.log(10.0)
+    return out
 
 
 def default_omega(n_bins: int, patch: PatchSpec | None = None) -> NDArray[np.float64]:
@@ -299,7 +365,9 @@ class SpectralFeatures(TransformerMixin, BaseEstimator):
         Parameters
         ----------
         X : array_like, shape (n_frames, n_features_in_)
-            As in :meth:`fit`. A row with NaN in its spectrum gives a row of NaN.
+            As in :meth:`fit`. A row whose spectrum is NaN over the whole band gives a row
+            of NaN; NaN ordinates within the band are left out, as ordinates below the noise
+            floor are.
 
         Returns
         -------
@@ -314,7 +382,9 @@ class SpectralFeatures(TransformerMixin, BaseEstimator):
         noise = np.where(np.isfinite(noise) & (noise > 0), noise, 0.0)
         spectrum = Xv[:, len(scalars) :]
         result = np.column_stack([*_scalar_features(col), self._shape(spectrum, noise)])
-        result[np.isnan(spectrum[:, self.band_ >= 0]).any(axis=1)] = np.nan
+        # A frame without a spectrum in the band has no features; one whose spectrum ends
+        # inside it (a coarser grid's, mapped by on_model_grid) is measured on what it has.
+        result[np.isnan(spectrum[:, self.band_ >= 0]).all(axis=1)] = np.nan
         names = self._names(scalars, int(self.band_.max()) + 1)
         keep = np.isin(np.asarray(names, dtype=object), self.feature_names_out_)
         return np.asarray(result[:, keep], dtype=float)

@@ -128,3 +128,26 @@ def model_failures(model: Any, part: str) -> Iterator[None]:
             f"the model's {part} ({model.kind!r:.20}) failed: {type(err).__name__}: {text}; "
             "the model file is malformed or was written by another version"
         ) from err
+
+
+def check_components(path_filter: Any, defects: Any) -> None:
+    """Raise InputError unless the components have the interface TerrainModel uses."""
+    if path_filter is not None:
+        methods = ("fit", "predict", "predict_proba", "set_params", "get_params")
+        missing = [m for m in methods if not callable(getattr(path_filter, m, None))]
+        params = path_filter.get_params() if not missing else {}
+        if missing or "mode" not in params:
+            raise errors.InputError(
+                "path_filter must be an estimator with fit, predict, predict_proba and a mode "
+                f"parameter (a rough_map.filter.PathFilter); got {path_filter!r}"
+            )
+        if params.get("inputs", "log_likelihood") != "log_likelihood":
+            raise errors.InputError(
+                "path_filter takes the log likelihoods of emission_log_likelihood: set "
+                f"inputs='log_likelihood'; got inputs={params['inputs']!r}"
+            )
+    if defects is not None and not callable(defects):
+        raise errors.InputError(
+            "defects must be None or a callable defects(R, distance) -> bool per frame (a "
+            f"rough_map.filter.IsolatedSpikes); got {defects!r}"
+        )

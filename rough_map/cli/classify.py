@@ -89,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
     model = load_terrain_model(args.model)
     (tab,) = feature_tables(
         open_traverses(args, args.traverse),
-        model.extraction_,
+        model.reading(),
         n_jobs=args.jobs,
         progress=args.progress,
     )

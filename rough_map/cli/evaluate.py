@@ -106,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
     model = load_terrain_model(args.model)
     tables = feature_tables(
         open_traverses(args, args.traverses),
-        model.extraction_,
+        model.reading(),
         n_jobs=args.jobs,
         progress=args.progress,
     )

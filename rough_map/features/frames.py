@@ -199,6 +199,9 @@ class FramePass:
         from every frame that sees it, and it is seen by many.
     features : bool
         Measure the patch (False: height samples only).
+    asked : Extraction or None
+        The extraction asked for when ``spacing auto`` chose ``extraction``'s step for the
+        traverse; None: ``extraction`` itself.
     """
 
     extraction: Extraction = field(default_factory=Extraction)
@@ -209,6 +212,7 @@ class FramePass:
     height_resolution: float | None = None
     height_points: int = 8_000
     features: bool = True
+    asked: Extraction | None = None
 
     def __post_init__(self) -> None:
         if self.source not in SOURCES:

@@ -142,10 +142,11 @@ def start_frame_pass(
     """
     if check_jobs(n_jobs) == 1 or not isinstance(model, str | Path):
         return None
-    extraction = card_extraction(model)
-    if extraction is None:
+    card = card_extraction(model)
+    if card is None:
         return None
-    settings = traverse_pass(traverse, extraction, height_resolution=resolution, features=True)
+    reading = Extraction.from_dict(card).any_density()
+    settings = traverse_pass(traverse, reading, height_resolution=resolution, features=True)
     return iter_frames(
         frame_jobs(traverse),
         settings,
@@ -178,7 +179,8 @@ def traverse_pass(
     ex = Extraction.from_dict(extraction)
     settings = FramePass(ex, source, calibration, **options)
     if ex.auto_spacing:
-        settings = dataclasses.replace(settings, extraction=resolve_spacing(traverse, settings))
+        chosen = resolve_spacing(traverse, settings)
+        settings = dataclasses.replace(settings, extraction=chosen, asked=ex)
     return settings
 
 

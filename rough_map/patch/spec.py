@@ -353,6 +353,14 @@ class Extraction:
             out["row_spacing"] = self.patch.row_spacing
         return out
 
+    def any_density(self) -> Extraction:
+        """This extraction with its step chosen for each traverse's density from this one
+        up (spacing auto, :func:`auto_spacing`): how the frames a model classifies are read,
+        so that a traverse too sparse for the model's grid is read on a coarser one rather
+        than refused (:func:`rough_map.classify.on_model_grid` maps its spectrum onto the
+        model's wavenumbers)."""
+        return dataclasses.replace(self, auto_spacing=True)
+
     def resolve(self, n_points: int) -> Extraction:
         """The extraction with a fixed step: ``self`` unless :attr:`auto_spacing`, else the
         :func:`auto_spacing` step for ``n_points`` points over the patch square.

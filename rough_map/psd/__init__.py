@@ -79,6 +79,7 @@ correlation between profiles) and ``_result`` (:class:`PatchRoughness`).
 
 from rough_map.patch import METHODS
 from rough_map.psd._gaps import fill_gaps
+from rough_map.psd._lateral import grid_log_gain
 from rough_map.psd._leakage import GRIDDINGS
 from rough_map.psd._result import PatchRoughness
 from rough_map.psd._shipped import write_leakage_tables
@@ -95,6 +96,7 @@ __all__ = [
     "METHODS",
     "PatchRoughness",
     "fill_gaps",
+    "grid_log_gain",
     "log_bias",
     "patch_roughness",
     "patch_roughness_batch",

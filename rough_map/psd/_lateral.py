@@ -38,7 +38,7 @@ import math
 import numpy as np
 
 from rough_map.psd._cache import table_cache
-from rough_map.psd._leakage import shipped_array
+from rough_map.psd._leakage import leakage, shipped_array
 from rough_map.psd._spectra import frozen
 from rough_map.psd._uncertainty import _TRI_S, _TRI_W, A_NODES, W_NODES, _matern
 
@@ -154,3 +154,32 @@ def lateral_log_gain(position: np.ndarray, w: np.ndarray, n: int) -> np.ndarray:
 def lateral_scale_value(position: np.ndarray) -> np.ndarray:
     """The lateral scale ``a`` of a fractional index into :data:`A_NODES`."""
     return np.interp(position, np.arange(A_NODES.size), A_NODES)
+
+
+def grid_log_gain(
+    n: int, waviness: np.ndarray, lateral_scale: np.ndarray, window: str = "hann"
+) -> np.ndarray:
+    """What a cell-mean grid of ``n`` samples along the profiles measures of a power-law
+    ground's profile spectrum, over the truth, at its ordinates ``k = 1 ... n // 2``:
+    natural log, shape (frames, n // 2).
+
+    It is the estimator's own model of its grid: the window and detrend leakage and the
+    cells' box filter with its folding (:mod:`rough_map.psd._leakage`) at each frame's
+    waviness, and the lateral box at its lateral scale (NaN: isotropic). The same ground
+    gridded at two steps over the same patch has the same wavenumbers at the same ``k``;
+    the difference of the two gains maps one grid's spectrum onto the other's.
+
+    Parameters
+    ----------
+    n : int
+        Samples per profile (the patch side over the step).
+    waviness, lateral_scale : ndarray, shape (frames,)
+        Each frame's w (dimensionless; NaN rows give NaN) and lateral scale ``a``.
+    window : str
+        The estimator's window.
+    """
+    w = np.asarray(waviness, dtype=float)
+    a = np.asarray(lateral_scale, dtype=float)
+    position = np.interp(np.where(np.isfinite(a), a, 1.0), A_NODES, np.arange(A_NODES.size))
+    gain = leakage(n, window, w, "cell_mean")[:, : n // 2]
+    return gain + lateral_log_gain(position, np.where(np.isfinite(w), w, -2.5), n)[:, : n // 2]
