@@ -378,3 +378,41 @@ def test_batch_failing_at_the_fused_map_keeps_the_old_top_and_the_done_traverse(
     again = batch_mod.run_batch([small_traverse], out, png=False, near_far=False)
     assert again.skipped == [name] and (out / "notes.txt").read_text() == "mine\n"
     assert _hashes(out) == {**_hashes(out), **before_top}
+
+
+def test_a_file_name_the_system_refuses_is_one_line(tmp_path: Path, capsys) -> None:
+    """A name longer than the file system allows (ENAMETOOLONG) or with a NUL byte is a
+    FileFormatError naming it, not an OSError (the fuzzer found the first)."""
+    from rough_map.io.pointcloud import read_cloud
+
+    with pytest.raises(FileFormatError, match="cannot be read: File name too long"):
+        read_cloud(tmp_path / ("x" * 300 + ".npy"))
+    with pytest.raises(FileFormatError, match=r"cannot be read: .*null"):
+        read_cloud(Path(str(tmp_path / "a\0b.npy")))
+    assert main(["features", str(tmp_path / ("y" * 300 + ".npy"))]) == 2
+    err = capsys.readouterr().err
+    assert "File name too long" in err and "Traceback" not in err and len(err.splitlines()) == 1
+
+
+def test_height_samples_of_points_at_absurd_coordinates() -> None:
+    """Points beyond any world (1e300 m, 1e18 m) are left out of a frame's height sample
+    rather than overflowing its cell index; far-apart cells keep their own sums."""
+    from rough_map.features.frames import height_sample
+
+    class Job:
+        pose = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+    pts = np.array([[1e300, 0, 5], [1e18, 1e18, 5], [0.05, 0.05, 2.0], [0.06, 0.01, 4.0]])
+    h = height_sample(pts, Job(), 0.1, 8000)
+    assert (h.rows.tolist(), h.cols.tolist(), h.sums.tolist(), h.counts.tolist()) == (
+        [0],
+        [0],
+        [6.0],
+        [2.0],
+    )
+    far = np.array([[9e8, 9e8, 1.0], [-9e8, -9e8, 3.0]])
+    h = height_sample(far, Job(), 0.001, 8000)  # 1.8e12 cells a side: keyed by pairs
+    assert sorted(zip(h.rows.tolist(), h.sums.tolist(), strict=True)) == [
+        (-9 * 10**11, 3.0),
+        (9 * 10**11, 1.0),
+    ]

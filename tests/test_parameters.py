@@ -157,6 +157,7 @@ def test_unknown_batch_option_is_both_errors() -> None:
         ({"ahead": math.inf}, "ahead must be a finite number in m"),
         ({"lateral": "0"}, "lateral"),
         ({"ahead": 1e300}, "ahead"),
+        ({"ahead": 10**400}, r"ahead must be a finite number in m .*; got 1000000000"),  # no float
     ],
 )
 def test_bad_patch_specs(kwargs: dict[str, Any], match: str) -> None:

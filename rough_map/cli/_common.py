@@ -263,8 +263,13 @@ def int_at_least(minimum: int, unit: str = "") -> Callable[[str], int]:
 def existing_path(text: str) -> Path:
     """Argument type: a file or folder that exists ("no such file or folder" otherwise)."""
     path = Path(text)
-    if not path.exists():
-        raise argparse.ArgumentTypeError(f"no such file or folder: {text!r}")
+    try:
+        path.stat()
+    except FileNotFoundError:
+        raise argparse.ArgumentTypeError(f"no such file or folder: {text!r:.200}") from None
+    except (OSError, ValueError) as err:  # a name too long, a NUL byte, no permission
+        why = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
+        raise argparse.ArgumentTypeError(f"cannot read {text!r:.200}: {why}") from None
     return path
 
 

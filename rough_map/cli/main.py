@@ -85,6 +85,9 @@ def main(argv: list[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # argparse's exit after --help, --version or a bad argument
         return exc.code if isinstance(exc.code, int) else 2
+    except Exception as exc:  # an argument type that failed otherwise: still one line
+        print(failure_line("", exc), file=sys.stderr)
+        return 2
     if args.command is None:
         print(
             "rough-map: error: a command is required (`rough-map --help` lists them)",

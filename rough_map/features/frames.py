@@ -39,6 +39,10 @@ from rough_map.stereo import read_image, stereo_to_cloud
 
 log = logging.getLogger(__name__)
 
+#: Largest world coordinate (m, |x| and |y|) of a point kept in a frame's height sample:
+#: beyond any projected CRS (UTM northings reach 1e7 m).
+MAX_WORLD_M = 1e9
+
 __all__ = [
     "SOURCES",
     "FrameJob",
@@ -325,7 +329,9 @@ def height_sample(
     pts = points[:: -(-len(points) // most)] if len(points) > most else points
     x, y, z, roll, pitch, yaw = job.pose
     xw, yw, zw = transform_columns(pts, rotation_matrix(roll, pitch, yaw), (x, y, z))
-    ok = np.isfinite(xw) & np.isfinite(yw) & np.isfinite(zw)
+    # Beyond MAX_WORLD_M no point is ground on any map (and its cell index would overflow).
+    reach = min(MAX_WORLD_M, 2.0**60 * resolution)
+    ok = (np.abs(xw) <= reach) & (np.abs(yw) <= reach) & np.isfinite(zw)
     if not ok.all():
         xw, yw, zw = xw[ok], yw[ok], zw[ok]
     if xw.size == 0:
@@ -335,9 +341,15 @@ def height_sample(
     rows = np.floor(yw * (1.0 / resolution)).astype(np.int64)
     r0, c0 = int(rows.min()), int(cols.min())
     height, width = int(rows.max()) - r0 + 1, int(cols.max()) - c0 + 1
-    key = (rows - r0) * width + (cols - c0)
     sums: NDArray[np.float64]
     counts: NDArray[np.float64]
+    if height * width >= 2**62:  # cells too far apart for one integer key: pairs
+        pairs, inverse = np.unique(np.column_stack([rows, cols]), axis=0, return_inverse=True)
+        inverse = inverse.ravel()
+        sums = np.bincount(inverse, weights=zw, minlength=len(pairs)).astype(np.float64)
+        counts = np.bincount(inverse, minlength=len(pairs)).astype(np.float64)
+        return HeightSample(resolution, pairs[:, 0], pairs[:, 1], sums, counts)
+    key = (rows - r0) * width + (cols - c0)
     if height * width <= 4 * key.size + 4096:  # a small box: count in place
         counts = np.bincount(key, minlength=height * width).astype(np.float64)
         sums = np.bincount(key, weights=zw, minlength=height * width).astype(np.float64)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import stat
 from pathlib import Path
 
 from rough_map._bounded import clip as short
@@ -18,12 +19,18 @@ MAX_MEMBER_BYTES = 4 * 2**30
 
 
 def check_readable(path: Path) -> None:
-    """Raise a :class:`FileFormatError` unless ``path`` is a non-empty regular file."""
-    if not path.exists():
-        raise FileFormatError(path, "no such file")
-    if not path.is_file():
+    """Raise a :class:`FileFormatError` unless ``path`` is a non-empty regular file (also for
+    a name the system refuses: too long, a NUL byte, no permission)."""
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        raise FileFormatError(path, "no such file") from None
+    except (OSError, ValueError) as err:
+        why = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
+        raise FileFormatError(path, f"cannot be read: {why}") from None
+    if not stat.S_ISREG(st.st_mode):
         raise FileFormatError(path, "not a regular file")
-    if path.stat().st_size == 0:
+    if st.st_size == 0:
         raise FileFormatError(path, "the file is empty")
 
 

@@ -66,7 +66,10 @@ def check_real(
     ok = isinstance(value, Real | np.floating | np.integer) and not isinstance(
         value, bool | np.bool_
     )
-    v = float(value) if ok else math.nan
+    try:
+        v = float(value) if ok else math.nan
+    except OverflowError:  # an int beyond any float
+        v = math.inf
     if ok and math.isfinite(v):
         ok = (v > low if low_open else v >= low) and (v < high if high_open else v <= high)
     else:
