@@ -102,9 +102,9 @@ def test_every_option_has_help_showing_its_default(command: str) -> None:
         text = formatter._expand_help(action) if action.help else ""
         if not text.strip():
             problems.append(f"{action.option_strings[0]}: no help")
-        elif action.default not in (None, False, argparse.SUPPRESS) and not mentions_default(
-            text, action.default
-        ):
+        elif not (
+            action.default is None or action.default is False or action.default == argparse.SUPPRESS
+        ) and not mentions_default(text, action.default):  # 0 is a default to show
             problems.append(f"{action.option_strings[0]}: help does not show {action.default!r}")
     assert problems == []
     assert str(0.1) in _subparsers()["map"].format_help()  # --resolution's default, shown
@@ -487,3 +487,38 @@ def test_stereo_without_pairs_or_calibration(small: Path, tmp_path: Path) -> Non
     feats = traverse_features(linked, source="stereo")  # no frame has a pair: none stops
     assert not feats.valid.any() and set(feats["reason"]) == {"no stereo pair"}
     assert traverse_features(linked, source="auto").valid.all()  # auto: the clouds
+
+
+def test_every_command_that_classifies_defaults_to_the_shipped_model(
+    small: Path, tmp_path: Path, capsys
+) -> None:
+    """One ``--model`` option: optional everywhere, the shipped default when left out, and
+    the same help in every command."""
+    code, _, err = run(capsys, "-q", "classify", small, "--out", tmp_path / "l.csv")
+    assert code == 0, err
+    again = tmp_path / "l2.csv"
+    assert run(capsys, "-q", "classify", small, "--model", "default", "--out", again)[0] == 0
+    assert (tmp_path / "l.csv").read_bytes() == again.read_bytes()
+    code, out, err = run(capsys, "-q", "evaluate", small, "--json")
+    assert code == 0 and json.loads(out)["model"] == "default", err
+    helps = set()
+    for command in ("classify", "evaluate", "map", "report", "batch", "demo"):
+        code, out, _ = run(capsys, command, "--help")
+        line = " ".join(out.split())
+        assert code == 0 and "--model M model name or file" in line, command
+        helps.add(line[line.index("--model M model") :].split(" --", 1)[0])
+    assert len(helps) == 1, helps
+
+
+def test_help_shows_the_defaults_that_come_from_the_config_and_zero(capsys) -> None:
+    """The --far-* options default to the near-far config: their help says its values; a
+    default of 0 (simulate's --seed) is shown like any other."""
+    import yaml
+
+    shipped = yaml.safe_load((ROOT / "configs" / "near_far.yaml").read_text(encoding="utf-8"))
+    _, out, _ = run(capsys, "map", "--help")
+    text = " ".join(out.split())
+    for key in ("tile_size_m", "max_range_m", "weight", "min_confidence"):
+        assert f"the config's {key}, {shipped[key]} in the shipped one" in text, key
+    _, out, _ = run(capsys, "simulate", "--help")
+    assert "seed of the world and the drive (default: 0)" in " ".join(out.split())

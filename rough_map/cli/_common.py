@@ -42,7 +42,7 @@ class DefaultsHelpFormatter(argparse.HelpFormatter):
         if (
             text
             and action.option_strings
-            and default not in (None, False, argparse.SUPPRESS)
+            and not (default is None or default is False or default == argparse.SUPPRESS)
             and "%(default)" not in text
             and not mentions_default(text, default)
         ):
@@ -313,15 +313,46 @@ def add_map_args(parser: argparse.ArgumentParser, *, settings: bool = True) -> N
         metavar="FILE",
         help="near-to-far settings (YAML like configs/near_far.yaml; default the shipped one)",
     )
-    for flag, unit, help_text in (
-        ("--far-tile", "m", "image tile side on the ground at the near-field patch, m"),
-        ("--far-range", "m", "farthest far-field cell from the vehicle, m"),
-        ("--far-weight", "1", "weight of a far-field prediction relative to a near-field patch"),
-        ("--far-confidence", "1", "calibrated probability a far cell needs; below: unknown"),
+    shipped = _shipped_near_far()
+    for flag, key, unit, help_text in (
+        (
+            "--far-tile",
+            "tile_size_m",
+            "m",
+            "image tile side on the ground at the near-field patch, m",
+        ),
+        ("--far-range", "max_range_m", "m", "farthest far-field cell from the vehicle, m"),
+        (
+            "--far-weight",
+            "weight",
+            "1",
+            "weight of a far-field prediction relative to a near-field patch",
+        ),
+        (
+            "--far-confidence",
+            "min_confidence",
+            "1",
+            "calibrated probability a far cell needs; below: unknown",
+        ),
     ):
-        parser.add_argument(
-            flag, type=positive_float(unit), default=None, metavar="X", help=help_text
+        text = (
+            f"{help_text} (default: the config's {key}, {shipped.get(key, '?')} in the shipped one)"
         )
+        parser.add_argument(flag, type=positive_float(unit), default=None, metavar="X", help=text)
+
+
+def _shipped_near_far() -> dict[str, Any]:
+    """The shipped ``configs/near_far.yaml`` as plain values, for the help ({} unreadable)."""
+    import yaml
+
+    from rough_map.resources import config_file
+
+    try:
+        with open(config_file("near_far.yaml"), encoding="utf-8") as f:
+            values = yaml.safe_load(f)
+    except (OSError, yaml.YAMLError):
+        return {}
+    return values if isinstance(values, dict) else {}
 
 
 def near_far_settings(args: argparse.Namespace) -> Any:
@@ -411,17 +442,24 @@ def open_traverses(args: argparse.Namespace, sources: Any) -> list[Any]:
     return out
 
 
-def add_model_arg(parser: argparse.ArgumentParser, *, required: bool = True) -> None:
-    """``--model M``: a model from ``rough-map train`` (optional: the shipped default)."""
+def add_model_arg(parser: argparse.ArgumentParser) -> None:
+    """``--model M``: a model from ``rough-map train``, the same option in every command that
+    classifies (default the shipped ``models/default``, :func:`chosen_model`)."""
     parser.add_argument(
         "--model",
         type=Path,
-        required=required,
         default=None,
         metavar="M",
-        help="model name or file (models/NAME or models/NAME.skops)"
-        + ("" if required else "; default models/default shipped with rough_map"),
+        help="model name or file (models/NAME or models/NAME.skops); default models/default "
+        "shipped with rough_map",
     )
+
+
+def chosen_model(args: argparse.Namespace) -> Path:
+    """The model ``--model`` names, or the shipped default."""
+    from rough_map.resources import model_base
+
+    return Path(args.model) if args.model is not None else model_base()
 
 
 def add_mode_arg(parser: argparse.ArgumentParser, default: str | None = None) -> None:

@@ -10,6 +10,7 @@ from rough_map.cli._common import (
     add_allow_outside_arg,
     add_jobs_arg,
     add_map_args,
+    add_model_arg,
     emit_json,
     existing_path,
     status,
@@ -39,12 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--out", type=Path, required=True, metavar="DIR", help="output folder (created if needed)"
     )
-    p.add_argument(
-        "--model",
-        default="default",
-        metavar="MODEL",
-        help="terrain model: 'default' (shipped) or a .skops file (default: default)",
-    )
+    add_model_arg(p)
     add_map_args(p, settings=False)
     p.add_argument("--no-png", action="store_true", help="skip the PNGs")
     p.add_argument(
@@ -71,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
     result = run_batch(
         args.traverses,
         args.out,
-        model=args.model,
+        model="default" if args.model is None else str(args.model),
         resolution=args.resolution,
         near_far=NEAR_FAR[args.near_far],
         png=not args.no_png,

@@ -22,6 +22,7 @@ from rough_map.cli._common import (
     add_mode_arg,
     add_model_arg,
     add_traverses_arg,
+    chosen_model,
     emit_json,
     open_traverses,
     status,
@@ -86,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.out.suffix.lower() != ".csv":
         raise InputError(f"--out must be a .csv file, not {args.out.name!r}")
-    model = load_terrain_model(args.model)
+    model = load_terrain_model(chosen_model(args))
     (tab,) = feature_tables(
         open_traverses(args, args.traverse),
         model.reading(),

@@ -22,13 +22,14 @@ import numpy as np
 
 from rough_map import iso8608, terrain
 from rough_map.cli._common import (
+    add_model_arg,
+    chosen_model,
     non_negative_int,
     positive_float,
     positive_int,
     status,
     table,
 )
-from rough_map.cli.map import default_model
 from rough_map.errors import InputError
 from rough_map.patch import DEFAULT_SPACING, Extraction
 
@@ -66,13 +67,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="N",
         help="render the stereo pair of every N-th frame (default 8: every 2 m at 0.5 m/s)",
     )
-    p.add_argument(
-        "--model",
-        type=Path,
-        default=None,
-        metavar="M",
-        help="terrain model (default: models/default shipped with rough_map)",
-    )
+    add_model_arg(p)
     p.add_argument(
         "--quick", action="store_true", help="only part 1: the estimator on synthetic patches"
     )
@@ -190,7 +185,7 @@ def _whole_story(args: argparse.Namespace, t0: float, synthetic: list[list[str]]
     _say(table(stereo_rows, STEREO_HEAD) + f"\n{stereo_note}")
 
     _say("\n== 4. Features, terrain model and Bayesian path filter; 5. map, near-to-far ==")
-    result = analyse(trav, args.model or default_model(), near_far="auto", progress=args.progress)
+    result = analyse(trav, chosen_model(args), near_far="auto", progress=args.progress)
     class_rows = _class_rows(result)
     _say(table(class_rows, CLASS_HEAD))
     evaluation = evaluate_model(result.model, [result.features])

@@ -33,6 +33,7 @@ from rough_map.cli._common import (
     add_mode_arg,
     add_model_arg,
     add_traverses_arg,
+    chosen_model,
     emit_json,
     open_traverses,
     status,
@@ -103,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     from rough_map.evaluation import evaluate_model
     from rough_map.features import feature_tables
 
-    model = load_terrain_model(args.model)
+    model = load_terrain_model(chosen_model(args))
     tables = feature_tables(
         open_traverses(args, args.traverses),
         model.reading(),
@@ -111,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
         progress=args.progress,
     )
     result = evaluate_model(model, tables, args.mode)
-    result["model"] = str(args.model)
+    result["model"] = "default" if args.model is None else str(args.model)
     fr = result["frames"]
     status(
         args,

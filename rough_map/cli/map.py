@@ -11,6 +11,7 @@ from rough_map.cli._common import (
     add_map_args,
     add_model_arg,
     add_traverses_arg,
+    chosen_model,
     emit_json,
     near_far_settings,
     open_traverses,
@@ -19,7 +20,6 @@ from rough_map.cli._common import (
     table,
     unused_optional_imports,
 )
-from rough_map.resources import model_base
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -41,7 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         ),
     )
     add_traverses_arg(p)
-    add_model_arg(p, required=False)
+    add_model_arg(p)
     p.add_argument(
         "--out", type=Path, required=True, metavar="DIR", help="output folder (created if needed)"
     )
@@ -72,11 +72,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def default_model() -> Path:
-    """The model shipped with rough_map (``models/default``), found as package data."""
-    return model_base()
-
-
 def run(args: argparse.Namespace) -> int:
     # Where they are installed, scikit-learn imports dask when the model's trial prediction
     # looks for array libraries (0.2 s, 10 MB), and pytest and rich when skops lists its
@@ -91,7 +86,7 @@ def _run(args: argparse.Namespace) -> int:
 
     out: Path = args.out
     near_far = NEAR_FAR[args.near_far]
-    model = args.model or default_model()
+    model = chosen_model(args)
     frames = None
     try:
         with start_up():

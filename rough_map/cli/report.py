@@ -11,11 +11,11 @@ from rough_map.cli._common import (
     add_map_args,
     add_model_arg,
     add_traverses_arg,
+    chosen_model,
     near_far_settings,
     open_traverses,
     status,
 )
-from rough_map.cli.map import default_model
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -38,7 +38,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--out", type=Path, required=True, metavar="DIR", help="folder for index.html and figures"
     )
-    add_model_arg(p, required=False)
+    add_model_arg(p)
     add_map_args(p)
     add_jobs_arg(p)
     p.set_defaults(func=run)
@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     owned = (*MAP_OUTPUTS, "index.html", "fig_*.png", "evaluation.json")
 
     near_far = NEAR_FAR[args.near_far]
-    model_path = args.model or default_model()
+    model_path = chosen_model(args)
     (traverse,) = open_traverses(args, args.traverse)
     result = analyse(
         traverse,
