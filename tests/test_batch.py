@@ -133,3 +133,53 @@ def test_batch_on_a_dask_cluster(serial, small_traverse, second_traverse, tmp_pa
 
     with rasterio.open(out / "sim-mixed-seed1" / "map.tif") as src:
         assert np.isfinite(src.read(1, masked=True).filled(np.nan)).any()
+
+
+@pytest.mark.slow
+def test_the_readme_scheduler_listens_only_where_it_is_told(tmp_path) -> None:
+    """The README's `dask scheduler` names the address of its dashboard as well as its own:
+    run so on 127.0.0.1, every socket it listens on is there (by default the dashboard
+    listens on every interface)."""
+    import re
+    import shutil
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    psutil = pytest.importorskip("psutil")
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
+    (line,) = [x for x in readme.splitlines() if x.startswith("dask scheduler ")]
+    host = re.search(r"--host (\S+)", line).group(1)
+    assert re.search(rf"--dashboard-address {re.escape(host)}:\d+", line), line
+    dask = shutil.which("dask", path=str(Path(sys.executable).parent))
+    if dask is None:
+        pytest.skip("dask.distributed (the cluster extra) is not installed")
+    proc = subprocess.Popen(
+        [
+            dask,
+            "scheduler",
+            "--host",
+            "127.0.0.1",
+            "--port",
+            "0",
+            "--dashboard-address",
+            "127.0.0.1:0",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        cwd=tmp_path,
+    )
+    try:
+        listening: list = []
+        for _ in range(100):
+            conns = psutil.Process(proc.pid).net_connections(kind="inet")
+            listening = [c for c in conns if c.status == psutil.CONN_LISTEN]
+            if len(listening) >= 2:  # the scheduler and its dashboard
+                break
+            time.sleep(0.2)
+        assert len(listening) >= 2, listening
+        assert {c.laddr.ip for c in listening} == {"127.0.0.1"}, listening
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
