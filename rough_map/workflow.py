@@ -49,6 +49,7 @@ from rough_map.io.truth import World, traverse_truth
 from rough_map.map import GridMap, fuse_cell_probabilities
 from rough_map.map import near_far as n2f
 from rough_map.map.fusion import log_fused
+from rough_map.map.grid_geometry import check_map_memory
 from rough_map.map.tiles import is_accumulator
 from rough_map.online import OnlineMapper
 from rough_map.patch import Extraction
@@ -212,8 +213,8 @@ def analyse(
     """
     if roughness not in ROUGHNESS_SOURCES:
         raise InputError(f"roughness must be 'raw' or 'smoothed'; got {roughness!r}")
-    if not isinstance(traverse, Traverse):
-        traverse = load_traverse(traverse)
+    traverse = traverse if isinstance(traverse, Traverse) else load_traverse(traverse)
+    check_map_memory(traverse.poses()[:, :2], resolution)
     if frames is None and features is None:
         frames = start_frame_pass(
             traverse, model, resolution=resolution, n_jobs=n_jobs, progress=progress

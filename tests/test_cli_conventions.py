@@ -522,3 +522,24 @@ def test_help_shows_the_defaults_that_come_from_the_config_and_zero(capsys) -> N
         assert f"the config's {key}, {shipped[key]} in the shipped one" in text, key
     _, out, _ = run(capsys, "simulate", "--help")
     assert "seed of the world and the drive (default: 0)" in " ".join(out.split())
+
+
+def test_a_map_too_fine_for_the_memory_is_refused_up_front(
+    small: Path, tmp_path: Path, capsys, monkeypatch
+) -> None:
+    """``map --resolution`` far below what the machine can hold is one line, before any
+    frame is read and with nothing written (it took 11-17 GB before); the API refuses it
+    too, and a budget that fits lets the same map through."""
+    import time
+
+    from rough_map.map import grid_geometry
+    from rough_map.workflow import analyse
+
+    started = time.monotonic()
+    code, _, err = run(capsys, "map", small, "--out", tmp_path / "m", "--resolution", "0.0002")
+    assert code == 2 and time.monotonic() - started < 30
+    assert len(err.splitlines()) == 1 and "resolution 0.0002 m: the map over this traverse" in err
+    assert "use a resolution of at least" in err and not (tmp_path / "m").exists()
+    monkeypatch.setattr(grid_geometry, "memory_budget", lambda: 2**10)  # 1 kB
+    with pytest.raises(InputError, match=r"beyond the 0\.0 GB a map may take here"):
+        analyse(small, "default", resolution=0.1, near_far=False)

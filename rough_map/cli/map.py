@@ -83,6 +83,7 @@ def run(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace) -> int:
     from rough_map.features.frames import start_workers
     from rough_map.features.traverse import start_frame_pass
+    from rough_map.map.grid_geometry import check_map_memory
 
     out: Path = args.out
     near_far = NEAR_FAR[args.near_far]
@@ -92,6 +93,7 @@ def _run(args: argparse.Namespace) -> int:
         with start_up():
             start_workers(args.jobs)  # they import rough_map while this reads the traverse
             (traverse,) = open_traverses(args, args.traverse)
+            check_map_memory(traverse.poses()[:, :2], args.resolution)
             # The workers start on the frames (the model's extraction is on its card) while
             # this process imports scikit-learn and loads the model; analyse checks that
             # they agree.
