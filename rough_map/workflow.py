@@ -246,8 +246,7 @@ def analyse(
         if frames is not None:
             frames.close()
         raise
-    if features is None:
-        features = mapper.features()
+    features = (features if features is not None else mapper.features()).require_valid()
     prediction = terrain_model.predict(features) if terrain_model is not None else None
     # the frames the class filter leaves out as isolated defects stay out of the smoothing
     defect = None if prediction is None or prediction.mode == "forward" else prediction.defect

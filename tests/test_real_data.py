@@ -57,3 +57,32 @@ def test_texture_scan_at_8_mm_is_flat_and_near_the_sensitivity_floor():
     r = patch_roughness(h[None], 0.008, min_profiles=1, max_gap=0.02)
     assert r.w > -1.2
     assert r.rms == pytest.approx(2.2e-3, abs=0.7e-3)
+
+
+@pytest.mark.parametrize("name", ["ground_with_crs.las", "autzen_trim.laz"])
+def test_a_georeferenced_lidar_file_says_where_it_lies(name: str, capsys) -> None:
+    """The real LAS/LAZ files are in a projected CRS, hundreds of km from the vehicle frame's
+    origin: the one line says how many points fell on the patch, where the patch was looked
+    for and where the cloud is, and what to do (issue 30)."""
+    from rough_map.cli.main import main
+
+    assert main(["features", str(DATA / name)]) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and "..." not in err and "…" not in err
+    assert "0 of " in err and "points over the patch (x 0.552 to 1.45, y -0.448 to 0.448 m)" in err
+    assert "they lie at x " in err and "e+05" in err and "a world-frame cloud?" in err
+
+
+def test_a_cloud_in_millimetres_and_a_frame_of_one_say_so() -> None:
+    from rough_map.errors import PatchError
+    from rough_map.features import cloud_roughness, frame_features
+
+    rng = np.random.default_rng(0)
+    mm = np.column_stack(
+        [rng.uniform(500, 1500, 40_000), rng.uniform(-450, 450, 40_000), rng.normal(0, 1, 40_000)]
+    )
+    with pytest.raises(PatchError, match=r"they lie at x 500 to 1500, .*in millimetres\?"):
+        cloud_roughness(mm)
+    row, _, _ = frame_features(mm)  # a frame of a traverse: its reason, in features.csv
+    assert not row["valid"] and "points over the patch" in row["reason"]
+    assert "in millimetres?" in row["reason"]

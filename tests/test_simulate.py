@@ -75,7 +75,7 @@ def test_the_manhole_is_a_spike(mixed, mixed_features):
 def test_default_model_maps_the_mixed_course(mixed, mixed_features):
     """Issue 5: >= 0.9 class accuracy over the near-field map cells on simulated truth,
     with the manhole flagged as an isolated defect rather than mapped as rough ground."""
-    from rough_map.cli.map import default_model
+    from rough_map.resources import model_base as default_model
     from rough_map.evaluation.truth import map_accuracy
     from rough_map.workflow import analyse
 
@@ -111,10 +111,9 @@ def test_map_and_report_commands_on_the_mixed_course(mixed, tmp_path, capsys):
         assert (report / fig).stat().st_size > 10_000 and fig in html
 
 
-def test_map_of_a_traverse_without_a_valid_patch_is_all_nodata(tmp_path, capsys):
-    """Every cloud too sparse for a patch: exit 0, an all-nodata map, a warning line."""
-    import rasterio
-
+def test_map_of_a_traverse_without_a_valid_patch_fails_with_the_reason(tmp_path, capsys):
+    """Every cloud too sparse for a patch: exit 2, one line with the frames' reason, and
+    nothing written (issue 30: an all-nodata map exited 0 before)."""
     (tmp_path / "clouds").mkdir()
     frames = []
     for i in range(4):
@@ -124,12 +123,12 @@ def test_map_of_a_traverse_without_a_valid_patch_is_all_nodata(tmp_path, capsys)
     (tmp_path / "traverse.json").write_text(
         json.dumps({"schema_version": "1.0", "name": "sparse", "frames": frames})
     )
-    assert main(["map", str(tmp_path), "--out", str(tmp_path / "map"), "--no-png"]) == 0
+    assert main(["map", str(tmp_path), "--out", str(tmp_path / "map"), "--no-png"]) == 2
     err = capsys.readouterr().err
-    assert "EmptyMapWarning: none of the 4 frames has a valid patch" in err
-    assert "Traceback" not in err and "warnings.warn" not in err
-    with rasterio.open(tmp_path / "map" / "map.tif") as ds:
-        assert np.isnan(ds.read(1)).all()
+    line = err.strip().splitlines()[-1]
+    assert line.startswith("rough-map map: error: sparse: none of its 4 frames has a valid patch")
+    assert "4 like frame 0: too few points" in line and "Traceback" not in err
+    assert not (tmp_path / "map").exists()
 
 
 def test_reverse_course_gives_the_surfaces_in_reverse(tmp_path):

@@ -167,15 +167,31 @@ def test_the_default_model_classifies_a_sparse_traverse(
 
 
 @pytest.mark.slow
-def test_frames_too_sparse_for_any_grid_have_no_class(tmp_dir: str) -> None:
-    """0.05 points per 8 mm cell: no step of the ladder is read, and no frame gets a class
-    (not the filter's prior)."""
-    traverse = sparse_traverse(tmp_dir, 0.05)
-    labels = f"{tmp_dir}/labels_none.csv"
-    assert main(["-q", "classify", traverse, "--model", "default", "--out", labels]) == 0
+def test_frames_too_sparse_for_any_grid_have_no_class(tmp_dir: str, capsys) -> None:
+    """Frames no step reads get no class (not the filter's prior); a traverse where none is
+    read fails with their reason rather than writing labels of nothing."""
+    import shutil
+    from pathlib import Path
+
+    sparse = Path(f"{tmp_dir}/holes")
+    shutil.copytree(sparse_traverse(tmp_dir, 1.0), sparse)
+    clouds = sorted((sparse / "clouds").glob("*.npy"))
+    for cloud in clouds[10:16]:  # six frames of 0.05 points per cell
+        points = np.load(cloud)
+        np.save(cloud, points[::20])
+    labels = f"{tmp_dir}/labels_holes.csv"
+    assert main(["-q", "classify", str(sparse), "--out", labels]) == 0
     with open(labels, newline="") as f:
         rows = list(csv.DictReader(f))
-    assert rows and not any(r["raw_class"] or r["filtered_class"] or r["level"] for r in rows)
+    empty = [
+        i for i, r in enumerate(rows) if not (r["raw_class"] or r["filtered_class"] or r["level"])
+    ]
+    assert empty == list(range(10, 16)), empty
+    capsys.readouterr()
+    traverse = sparse_traverse(tmp_dir, 0.05)
+    assert main(["-q", "classify", traverse, "--out", f"{tmp_dir}/none.csv"]) == 2
+    err = capsys.readouterr().err
+    assert "none of its" in err and "frames has a valid patch" in err and len(err.splitlines()) == 1
 
 
 def test_feature_matrix_on_the_model_grid_keeps_the_scalars(mixed_table) -> None:

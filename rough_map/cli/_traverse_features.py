@@ -39,6 +39,7 @@ def run_traverse(args: argparse.Namespace) -> int:
     feats = traverse_features(
         traverse, extraction, source=args.points_from, n_jobs=args.jobs, progress=args.progress
     )
+    feats.require_valid()
     from rough_map.filter import smooth_table  # scikit-learn and filterpy: only here
 
     feats = smooth_table(feats)  # R_smooth, w_smooth and their sigmas along the path

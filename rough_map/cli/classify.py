@@ -94,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
         n_jobs=args.jobs,
         progress=args.progress,
     )
-    pred = model.predict(tab, mode=args.mode)
+    pred = model.predict(tab.require_valid(), mode=args.mode)
     cols = tab.columns
     raw_p = pred.raw_confidence
     filt_p = pred.filtered_confidence

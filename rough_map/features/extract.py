@@ -45,6 +45,7 @@ from rough_map.patch import (
     lattice_patch,
     points_in_patch,
     pooled_rows,
+    where_the_cloud_lies,
 )
 from rough_map.patch._params import check_int, check_real
 from rough_map.psd import PatchRoughness, patch_roughness, patch_roughness_each
@@ -153,7 +154,8 @@ def grid_frame(
             ex = ex.resolve(points_in_patch(points, ex.patch)) if ex.auto_spacing else ex
             grid = grid_points(points, ex.patch, roll=roll, pitch=pitch, min_points=min_points)
     except RoughMapError as exc:
-        row["reason"] = f"too few points: {exc}" if "points" in str(exc) else str(exc)
+        where = where_the_cloud_lies(points, ex.patch) if "points" in str(exc) else ""
+        row["reason"] = f"too few points: {where or exc}" if "points" in str(exc) else str(exc)
         return GriddedFrame(row, None, ex)
     row.update(
         n_points=grid.n_points,
@@ -314,6 +316,23 @@ def cloud_roughness(
         Too few points in the patch, or a patch the estimator refuses.
     """
     asked = _as_extraction(extraction)
+    try:
+        return _cloud_roughness(points, asked, roll, pitch, min_points)
+    except PatchError as exc:
+        where = where_the_cloud_lies(points, asked.patch) if "points" in str(exc) else ""
+        if not where:
+            raise
+        raise PatchError(where) from None
+
+
+def _cloud_roughness(
+    points: np.ndarray,
+    asked: Extraction,
+    roll: float | None,
+    pitch: float | None,
+    min_points: int,
+) -> tuple[GriddedPatch, PatchRoughness]:
+    """:func:`cloud_roughness` of a checked extraction."""
     on_lattice = _lattice_extraction(points, asked)
     if on_lattice is not None:
         grid = grid_lattice(points, asked.patch, on_lattice[1], min_points=min_points)

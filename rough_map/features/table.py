@@ -189,6 +189,22 @@ class FeatureTable:
             for k, v in self.columns.items()
         }
 
+    def require_valid(self) -> FeatureTable:
+        """``self``, or :class:`InputError` when no frame has a valid patch, with the reason
+        most of them give: a map, labels or a table of nothing is not a result."""
+        valid = self.valid
+        if len(valid) and not valid.any():
+            reasons = [str(r) for r in np.asarray(self.columns.get("reason", []), dtype=object)]
+            kinds: dict[str, list[str]] = {}  # by the words before the figures
+            for r in reasons:
+                kinds.setdefault(r.split(":")[0], []).append(r)
+            same = max(kinds.values(), key=len) if kinds else []
+            raise InputError(
+                f"{self.name}: none of its {len(valid)} frames has a valid patch"
+                + (f"; {len(same)} like frame {reasons.index(same[0])}: {same[0]}" if same else "")
+            )
+        return self
+
     @property
     def valid(self) -> np.ndarray:
         """Frames with a valid patch (bool per frame)."""

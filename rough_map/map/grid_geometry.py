@@ -17,6 +17,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from rough_map.config import Crs
 from rough_map.errors import InputError
+from rough_map.patch import PatchSpec
 
 if TYPE_CHECKING:
     from rasterio.transform import Affine
@@ -225,8 +226,6 @@ def check_map_memory(xy: ArrayLike, resolution: float, reach: float | None = Non
     :func:`memory_budget`: an :class:`InputError` naming the finest resolution that fits,
     before any frame is read."""
     if reach is None:
-        from rough_map.patch import PatchSpec
-
         spec = PatchSpec()
         reach = spec.ahead + spec.size
     pts = np.asarray(xy, dtype=float).reshape(-1, 2)

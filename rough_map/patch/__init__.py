@@ -49,6 +49,7 @@ from rough_map.patch.spec import (
     points_in_patch,
     pooled_rows,
     spacing_ladder,
+    where_the_cloud_lies,
 )
 
 __all__ = [
@@ -74,4 +75,5 @@ __all__ = [
     "points_in_patch",
     "pooled_rows",
     "spacing_ladder",
+    "where_the_cloud_lies",
 ]

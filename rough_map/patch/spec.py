@@ -155,6 +155,33 @@ def points_in_patch(points: np.ndarray, spec: PatchSpec) -> int:
     return int(np.count_nonzero(inside))
 
 
+def where_the_cloud_lies(points: np.ndarray, spec: PatchSpec) -> str:
+    """For a cloud with (almost) no point over the patch, one short sentence: how many of its
+    points are over the patch, where the patch was looked for and where the points are, in
+    the vehicle frame (m), with a guess at why; "" when the patch holds at least one point in
+    a hundred, or the cloud has no finite point."""
+    _check_spec(spec)
+    pts = _as_cloud(points)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    inside = points_in_patch(pts, spec) if len(pts) else 0
+    if len(pts) == 0 or inside >= 0.01 * len(pts):
+        return ""
+    x1, y1 = spec.x0 + spec.n * spec.spacing, spec.y0 + spec.rows * spec.row_step
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    centre, spread = 0.5 * np.abs(lo + hi)[:2].max(), (hi - lo)[:2].max()
+    if centre > 1e3 and centre > 10 * spread:
+        hint = ": a world-frame cloud? give it in the vehicle frame"
+    elif spread > 100 * spec.size:
+        hint = ": in millimetres? clouds are read in metres"
+    else:
+        hint = ""
+    return (
+        f"{inside} of {len(pts)} points over the patch (x {spec.x0:.3g} to {x1:.3g}, y "
+        f"{spec.y0:.3g} to {y1:.3g} m); they lie at x {lo[0]:.4g} to "
+        f"{hi[0]:.4g}, y {lo[1]:.4g} to {hi[1]:.4g} m{hint}"
+    )
+
+
 def auto_spacing(
     n_points: int,
     spec: PatchSpec | None = None,
