@@ -75,8 +75,8 @@ def test_the_manhole_is_a_spike(mixed, mixed_features):
 def test_default_model_maps_the_mixed_course(mixed, mixed_features):
     """Issue 5: >= 0.9 class accuracy over the near-field map cells on simulated truth,
     with the manhole flagged as an isolated defect rather than mapped as rough ground."""
-    from rough_map.resources import model_base as default_model
     from rough_map.evaluation.truth import map_accuracy
+    from rough_map.resources import model_base as default_model
     from rough_map.workflow import analyse
 
     trav = load_traverse(mixed)
