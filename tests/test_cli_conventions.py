@@ -543,3 +543,18 @@ def test_a_map_too_fine_for_the_memory_is_refused_up_front(
     monkeypatch.setattr(grid_geometry, "memory_budget", lambda: 2**10)  # 1 kB
     with pytest.raises(InputError, match=r"beyond the 0\.0 GB a map may take here"):
         analyse(small, "default", resolution=0.1, near_far=False)
+
+
+def test_classify_and_map_write_one_labels_schema(small: Path, tmp_path: Path, capsys) -> None:
+    """``classify --out labels.csv`` and map's ``labels.csv``: the same columns, and the
+    same rows for the same traverse and model (issue 30: they had two schemas)."""
+    from rough_map.export.labels import LABEL_COLUMNS
+
+    assert run(capsys, "-q", "classify", small, "--out", tmp_path / "labels.csv")[0] == 0
+    assert run(capsys, "-q", "map", small, "--out", tmp_path / "map", "--no-png")[0] == 0
+    with open(tmp_path / "labels.csv", newline="") as f:
+        mine = list(csv.reader(f))
+    with open(tmp_path / "map" / "labels.csv", newline="") as f:
+        mapped = list(csv.reader(f))
+    assert tuple(mine[0]) == tuple(mapped[0]) == LABEL_COLUMNS
+    assert mine == mapped

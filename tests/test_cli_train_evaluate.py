@@ -145,12 +145,12 @@ def test_evaluate_matches_sklearn_on_classify_output(sim, trained, tmp_path, cap
                            "--out", out_csv)  # fmt: skip
         assert code == 0, err
         rows = read_labels(out_csv)
-        assert set(rows) >= {"raw_class", "raw_proba", "filtered_class", "filtered_proba"}
+        assert set(rows) >= {"raw_class", "raw_p", "filtered_class", "filtered_p"}
         scored = (rows["valid"] == "true") & (rows["label"] != "")
         truth.append(rows["label"][scored])
         raw.append(rows["raw_class"][scored])
         filtered.append(rows["filtered_class"][scored])
-        proba = rows["filtered_proba"].astype(float)
+        proba = rows["filtered_p"].astype(float)
         assert np.all((proba > 0) & (proba <= 1))
     y, r, f = (np.concatenate(v).astype(str) for v in (truth, raw, filtered))
     code, out, _ = run(capsys, "evaluate", sim["v03_csv"], sim["v05_csv"], sim["v07_csv"],

@@ -1,22 +1,20 @@
 """``rough-map classify TRAVERSE --model M --out labels.csv``: terrain class of every frame.
 
-The CSV has one row per frame: ``frame``, ``t`` (s), ``x``, ``y`` (m), ``distance_m`` along
-the path, ``valid``, the raw (per-frame classifier) class and its probability, the
-filtered class (path filter, mode as the model's unless ``--mode``) and its probability,
-the roughness ``level``, ``R_m3_per_rad`` and the true ``label`` if the traverse has one.
-A frame without a valid patch has an empty raw and filtered class and probability: the
-classifier has nothing to go on, and the filter only carries its belief forward over it.
-"""
+The CSV is the ``labels.csv`` that ``map`` writes (:data:`rough_map.export.labels.LABEL_COLUMNS`):
+one row per frame, ``frame``, ``t`` (s), ``x``, ``y`` (m), ``distance`` (m) along the path,
+``valid``, the true ``label`` if the traverse has one, the raw (per-frame classifier) class
+and its probability ``raw_p``, the filtered class (path filter, mode as the model's unless
+``--mode``) and ``filtered_p``, the roughness ``level``, the isolated ``defect`` flag and R
+and w smoothed along the path. A frame without a valid patch has an empty raw and filtered
+class and probability: the classifier has nothing to go on, and the filter only carries its
+belief forward over it."""
 
 from __future__ import annotations
 
 import argparse
-import csv
-import math
 from collections import Counter
 from pathlib import Path
 
-from rough_map._files import atomic_output
 from rough_map.cli._common import (
     add_jobs_arg,
     add_mode_arg,
@@ -29,23 +27,6 @@ from rough_map.cli._common import (
     table,
 )
 from rough_map.errors import InputError
-
-COLUMNS = (
-    "frame",
-    "t",
-    "x",
-    "y",
-    "distance_m",
-    "valid",
-    "raw_class",
-    "raw_proba",
-    "filtered_class",
-    "filtered_proba",
-    "level",
-    "R_m3_per_rad",
-    "defect",
-    "label",
-)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -72,14 +53,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _fmt(value: object) -> str:
-    if isinstance(value, float):
-        return "" if not math.isfinite(value) else f"{value:.6g}"
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    return str(value)
-
-
 def run(args: argparse.Namespace) -> int:
     # rough_map.classify imports scikit-learn and skops: only when classifying
     from rough_map.classify import load_terrain_model
@@ -95,36 +68,14 @@ def run(args: argparse.Namespace) -> int:
         progress=args.progress,
     )
     pred = model.predict(tab.require_valid(), mode=args.mode)
-    cols = tab.columns
-    raw_p = pred.raw_confidence
-    filt_p = pred.filtered_confidence
+    from rough_map.export.labels import write_labels  # the labels.csv that map writes too
+    from rough_map.filter import smooth_table
+
+    # R and w smoothed along the path, as map's labels.csv has them (the frames the
+    # filter leaves out as isolated defects stay out of the smoothing, as in map)
+    defect = None if pred.mode == "forward" else pred.defect
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_output(args.out) as tmp, open(tmp, "w", newline="") as fh:
-        writer = csv.writer(fh)
-        writer.writerow(COLUMNS)
-        for i in range(len(tab)):
-            valid = bool(pred.valid[i])
-            writer.writerow(
-                [
-                    _fmt(v)
-                    for v in (
-                        int(cols["frame"][i]),
-                        float(cols["t"][i]),
-                        float(cols["x"][i]),
-                        float(cols["y"][i]),
-                        float(pred.distance[i]),
-                        valid,
-                        pred.raw_class[i],
-                        float(raw_p[i]),
-                        pred.filtered_class[i],
-                        float(filt_p[i]),
-                        pred.level[i],
-                        float(cols["R"][i]) if valid else math.nan,
-                        bool(pred.defect[i]),
-                        cols["label"][i],
-                    )
-                ]
-            )
+    write_labels(smooth_table(tab, defect=defect), pred, args.out)
     n_invalid = int((~pred.valid).sum())
     status(args, f"wrote {len(tab)} frames ({n_invalid} without a valid patch) to {args.out}")
     counts = Counter(str(c) for c in pred.filtered_class if c)
