@@ -558,3 +558,18 @@ def test_classify_and_map_write_one_labels_schema(small: Path, tmp_path: Path, c
         mapped = list(csv.reader(f))
     assert tuple(mine[0]) == tuple(mapped[0]) == LABEL_COLUMNS
     assert mine == mapped
+
+
+def test_map_and_report_take_what_their_help_offers(small: Path, tmp_path: Path, capsys) -> None:
+    """map and report read the traverse's clouds: their help offers a traverse, and a
+    features table is one line saying so; classify and evaluate take the table."""
+    table_file = tmp_path / "f.csv"
+    assert run(capsys, "-q", "features", small, "--out", table_file)[0] == 0
+    for command in ("map", "report"):
+        _, out, _ = run(capsys, command, "--help")
+        assert "features table" not in " ".join(out.split()), command
+        code, _, err = run(capsys, command, table_file, "--out", tmp_path / command)
+        assert code == 2 and len(err.splitlines()) == 1 and "is a features table" in err
+    code, _, err = run(capsys, "-q", "classify", table_file, "--out", tmp_path / "l.csv")
+    assert code == 0, err
+    assert run(capsys, "-q", "evaluate", table_file)[0] == 0

@@ -389,18 +389,37 @@ def add_jobs_arg(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def add_traverses_arg(parser: argparse.ArgumentParser, *, many: bool = False) -> None:
-    """The positional TRAVERSE (or TRAVERSE... with ``many``): folder, file or table."""
+def add_traverses_arg(
+    parser: argparse.ArgumentParser, *, many: bool = False, tables: bool = True
+) -> None:
+    """The positional TRAVERSE (or TRAVERSE... with ``many``): folder, file or, with
+    ``tables``, a features table (the commands that read the clouds take no table)."""
+    text = ("labelled " if many else "") + "traverse folder or file (traverse.json or .yaml)"
+    if tables:
+        text += (
+            ", or a features table (.csv or .parquet, with its metadata beside it) written "
+            "by `rough-map features`"
+        )
     parser.add_argument(
         "traverses" if many else "traverse",
         nargs="+" if many else None,
-        type=existing_path,
+        type=existing_path if tables else traverse_path,
         metavar="TRAVERSE",
-        help=("labelled " if many else "")
-        + "traverse folder or file, or a features table (.csv or .parquet, with its "
-        "metadata beside it) written by `rough-map features`",
+        help=text,
     )
     add_allow_outside_arg(parser)
+
+
+def traverse_path(text: str) -> Path:
+    """Argument type of the commands that read a traverse's clouds: an existing path that
+    is not a features table."""
+    path = existing_path(text)
+    if path.suffix.lower() in (".csv", ".parquet"):
+        raise argparse.ArgumentTypeError(
+            f"{text!r:.120} is a features table; this command reads the traverse itself (its "
+            "clouds give the elevation and the map): give its folder or traverse.json"
+        )
+    return path
 
 
 def add_allow_outside_arg(parser: argparse.ArgumentParser) -> None:

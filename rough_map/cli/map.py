@@ -40,7 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
             "either the old outputs or the new ones; your own files in DIR are kept."
         ),
     )
-    add_traverses_arg(p)
+    add_traverses_arg(p, tables=False)
     add_model_arg(p)
     p.add_argument(
         "--out", type=Path, required=True, metavar="DIR", help="output folder (created if needed)"

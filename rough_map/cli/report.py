@@ -34,7 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
             "layer (written to DIR too)."
         ),
     )
-    add_traverses_arg(p)
+    add_traverses_arg(p, tables=False)
     p.add_argument(
         "--out", type=Path, required=True, metavar="DIR", help="folder for index.html and figures"
     )
