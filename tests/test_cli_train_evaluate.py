@@ -318,3 +318,18 @@ def test_tables_need_their_metadata_file(sim, trained, tmp_path, capsys) -> None
                          tmp_path / "l.csv", "-q")  # fmt: skip
     assert code == 0 and err == ""
     assert read_labels(tmp_path / "l.csv")["frame"].size == len(read_features(lone))
+
+
+def test_train_does_not_replace_a_model_without_force(sim, trained, capsys) -> None:
+    """One --out rule: a trained model is replaced only with --force, and the refusal comes
+    before any feature is computed (issue 30)."""
+    model_file = trained.with_suffix(".skops")
+    before = model_file.read_bytes()
+    code = main(["train", str(sim["train_a"]), str(sim["train_b"]), "--out", str(trained)])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.splitlines()) == 1
+    assert "exists: train does not replace a model without --force" in err
+    assert model_file.read_bytes() == before
+    code = main(["-q", "train", str(sim["train_a"]), str(sim["train_b"]), "--out", str(trained),
+                 "--cv", "2", "--force"])  # fmt: skip
+    assert code == 0 and model_file.exists()

@@ -75,6 +75,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="model name: writes NAME.skops and NAME.card.json",
     )
     p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace a model already at --out (a trained model is never replaced silently)",
+    )
+    p.add_argument(
         "--classifier",
         choices=CLASSIFIERS,
         default=CLASSIFIERS[0],
@@ -119,6 +124,7 @@ def run(args: argparse.Namespace) -> int:
     from rough_map.features import feature_tables, write_features
     from rough_map.filter import make_terrain_model
 
+    _check_new_model(args.out, args.force)
     levels = load_roughness_levels(args.levels)
     _check_labelled(args.traverses)
     extraction = Extraction(patch=patch_spec(args), use_imu=not args.no_tilt).to_dict()
@@ -185,3 +191,15 @@ def _check_labelled(sources: list[Path]) -> None:
                 f"traverse {traverse.name!r} ({src}) has no labelled frames; training needs a "
                 "terrain class ('label') on the frames"
             )
+
+
+def _check_new_model(out: Path, force: bool) -> None:
+    """Refuse, before any work, to replace a model at ``out`` without ``--force``."""
+    from rough_map.io.model_files import model_paths
+
+    there = [p for p in model_paths(out) if p.exists()]
+    if there and not force:
+        raise InputError(
+            f"{there[0]} exists: train does not replace a model without --force "
+            "(or choose another --out)"
+        )
