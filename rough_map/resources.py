@@ -19,6 +19,9 @@ __all__ = ["DEFAULT_MODEL", "config_file", "model_base", "shipped_models"]
 DEFAULT_MODEL = "default"
 
 _MODEL_SUFFIX = ".skops"
+#: The models rough_map ships. Any other file in ``models/`` is a user's (``train --out
+#: models/mine`` in a checkout): it is not listed as shipped, and the wheel leaves it out.
+SHIPPED_MODELS = ("default",)
 
 
 def _folder(name: str) -> Path:
@@ -28,11 +31,9 @@ def _folder(name: str) -> Path:
 
 
 def shipped_models() -> list[str]:
-    """Names of the models shipped with rough_map (``default``, ...)."""
+    """Names of the models shipped with rough_map (:data:`SHIPPED_MODELS` that are there)."""
     folder = _folder("models")
-    if not folder.is_dir():
-        return []
-    return sorted(p.name[: -len(_MODEL_SUFFIX)] for p in folder.glob("*" + _MODEL_SUFFIX))
+    return [n for n in SHIPPED_MODELS if (folder / (n + _MODEL_SUFFIX)).is_file()]
 
 
 def model_base(name: str = DEFAULT_MODEL) -> Path:
@@ -44,7 +45,7 @@ def model_base(name: str = DEFAULT_MODEL) -> Path:
         No model of that name is shipped.
     """
     base = _folder("models") / name
-    if not base.with_name(name + _MODEL_SUFFIX).is_file():
+    if name not in SHIPPED_MODELS or not base.with_name(name + _MODEL_SUFFIX).is_file():
         known = ", ".join(shipped_models()) or "none"
         raise InputError(f"no shipped model named {name!r} (shipped: {known})")
     return base

@@ -22,6 +22,7 @@ import pytest
 
 from rough_map.classify import RoughnessLevels, load_roughness_levels
 from rough_map.classify.persistence import load_terrain_model, read_card
+from rough_map.errors import InputError
 from rough_map.resources import config_file, model_base, shipped_models
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -35,6 +36,24 @@ def test_shipped_files_are_the_top_level_ones() -> None:
         assert config_file(name).read_bytes() == (ROOT / "configs" / name).read_bytes()
 
 
+def test_a_users_model_beside_the_shipped_one_is_not_shipped(tmp_path, monkeypatch) -> None:
+    """``train --out models/mine`` in a checkout writes beside the shipped model: it is not
+    listed as shipped nor found by its bare name (and pyproject packs only the default)."""
+    import shutil
+
+    from rough_map import resources
+
+    for suffix in (".skops", ".card.json"):
+        shutil.copy(model_base().with_suffix(suffix), tmp_path / f"default{suffix}")
+        shutil.copy(model_base().with_suffix(suffix), tmp_path / f"mine{suffix}")
+    monkeypatch.setattr(resources, "_folder", lambda name: tmp_path)
+    assert resources.shipped_models() == ["default"]
+    with pytest.raises(InputError, match=r"no shipped model named 'mine' \(shipped: default\)"):
+        resources.model_base("mine")
+    pyproject = (Path(__file__).resolve().parents[1] / "pyproject.toml").read_text()
+    assert '"models/default.skops", "models/default.card.json"' in pyproject
+
+
 def test_bare_model_name_loads_the_shipped_model(tmp_path, monkeypatch) -> None:
     monkeypatch.chdir(tmp_path)  # no models/ here: the name must come from the package
     model = load_terrain_model("default")
@@ -42,7 +61,7 @@ def test_bare_model_name_loads_the_shipped_model(tmp_path, monkeypatch) -> None:
 
 
 def test_unknown_model_name_lists_the_shipped_ones(tmp_path, monkeypatch) -> None:
-    from rough_map.errors import InputError, ModelError
+    from rough_map.errors import ModelError
 
     monkeypatch.chdir(tmp_path)
     with pytest.raises(ModelError, match=r"no such model file .*shipped with rough_map: default"):
