@@ -120,7 +120,7 @@ def test_spectral_features_leave_out_the_ordinates_a_coarse_grid_lacks() -> None
 
 
 @cache
-def sparse_traverse(tmp: str, per_cell: float, seed: int = 21) -> str:
+def sparse_traverse(tmp: str, per_cell: float, seed: int) -> str:
     out = f"{tmp}/sparse_{per_cell}_{seed}"
     sensor = SensorSpec(points_per_cell=per_cell)
     simulate(out, "mixed", length=24.0, seed=seed, images=False, sensor=sensor)
@@ -174,7 +174,7 @@ def test_frames_too_sparse_for_any_grid_have_no_class(tmp_dir: str, capsys) -> N
     from pathlib import Path
 
     sparse = Path(f"{tmp_dir}/holes")
-    shutil.copytree(sparse_traverse(tmp_dir, 1.0), sparse)
+    shutil.copytree(sparse_traverse(tmp_dir, 1.0, 21), sparse)
     clouds = sorted((sparse / "clouds").glob("*.npy"))
     for cloud in clouds[10:16]:  # six frames of 0.05 points per cell
         points = np.load(cloud)
@@ -188,7 +188,7 @@ def test_frames_too_sparse_for_any_grid_have_no_class(tmp_dir: str, capsys) -> N
     ]
     assert empty == list(range(10, 16)), empty
     capsys.readouterr()
-    traverse = sparse_traverse(tmp_dir, 0.05)
+    traverse = sparse_traverse(tmp_dir, 0.05, 21)
     assert main(["-q", "classify", traverse, "--out", f"{tmp_dir}/none.csv"]) == 2
     err = capsys.readouterr().err
     assert "none of its" in err and "frames has a valid patch" in err and len(err.splitlines()) == 1
