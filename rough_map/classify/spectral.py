@@ -118,7 +118,9 @@ def on_model_grid(table: Any, omega: ArrayLike) -> NDArray[np.float64]:
     what its grid did to them and plus what the model's grid would have
     (:func:`rough_map.psd.grid_log_gain`, at each frame's w and lateral scale). The model's
     wavenumbers above the table's band are NaN, which :class:`SpectralFeatures` leaves out
-    as it leaves out ordinates below the noise floor.
+    as it leaves out ordinates below the noise floor. Both grids are taken as cell means of
+    random points (a lattice read on its own nodes is corrected as if it were one), and R,
+    w and the other scalar columns are left as the table has them.
 
     Raises
     ------

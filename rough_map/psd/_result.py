@@ -133,8 +133,8 @@ class PatchRoughness:
         """``PatchRoughness(**values)`` for a dict that names every field, built in a tenth
         of the time: a frozen dataclass sets each of its 30 fields through
         ``object.__setattr__``, which is what the batched estimator would spend most of
-        its per-patch time on. :class:`KeyError`/:class:`TypeError` for a missing or
-        unknown field, as the constructor would refuse it."""
+        its per-patch time on. :class:`TypeError` for a missing or unknown field, as the
+        constructor would refuse it."""
         if values.keys() != _FIELDS:
             missing, extra = _FIELDS - values.keys(), values.keys() - _FIELDS
             raise TypeError(
