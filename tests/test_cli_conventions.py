@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import math
 import shutil
 from pathlib import Path
 
@@ -610,3 +611,50 @@ def test_ctrl_c_during_a_two_process_run_is_one_line(command: str, tmp_path: Pat
         assert err.strip() == "rough-map: interrupted", err
         interrupted += 1
     assert interrupted, "every run finished before the interrupt"
+
+
+def _features_json(capsys, *argv: object) -> dict:
+    code, out, err = run(capsys, "features", *argv, "--json")
+    assert code == 0, err
+    return json.loads(out)
+
+
+def test_a_cloud_in_other_units_columns_or_frame_reads_as_in_the_vehicle_frame(
+    dense_cloud, tmp_path: Path, capsys
+) -> None:
+    """The same ground given in millimetres (--units mm), as a text file headed
+    time,lon,lat,alt (--columns), or in a world frame moved and turned (--at X,Y,YAW) reads
+    as it does in the vehicle frame in metres (issue 30, item 2)."""
+    pts = dense_cloud(n_points=200_000)
+    np.save(tmp_path / "m.npy", pts)
+    ref = _features_json(capsys, tmp_path / "m.npy")
+    np.save(tmp_path / "mm.npy", pts * 1000.0)
+    mm = _features_json(capsys, tmp_path / "mm.npy", "--units", "mm")
+    assert mm["R"] == pytest.approx(ref["R"], rel=1e-6) and mm["w"] == pytest.approx(ref["w"])
+    code, _, err = run(capsys, "features", tmp_path / "mm.npy")
+    assert code == 2 and "in millimetres? clouds are read in metres" in err
+    text = tmp_path / "gnss.csv"
+    rows = np.column_stack([np.arange(len(pts)), pts])
+    np.savetxt(text, rows[:, [0, 1, 2, 3]], delimiter=",", header="time,lon,lat,alt", comments="")
+    code, _, err = run(capsys, "features", text)
+    assert code == 2 and "none of them x, y and z" in err and "--columns" in err
+    cols = _features_json(capsys, text, "--columns", "lon,lat,alt")
+    assert cols["R"] == pytest.approx(ref["R"], rel=1e-5)
+    yaw = math.radians(30.0)
+    c, s = math.cos(yaw), math.sin(yaw)
+    world = np.column_stack(
+        [
+            512_000.0 + c * pts[:, 0] - s * pts[:, 1],
+            4_100_000.0 + s * pts[:, 0] + c * pts[:, 1],
+            250.0 + pts[:, 2],
+        ]
+    )
+    np.save(tmp_path / "world.npy", world)
+    code, _, err = run(capsys, "features", tmp_path / "world.npy")
+    assert code == 2 and "a world-frame cloud?" in err
+    at = _features_json(capsys, tmp_path / "world.npy", "--at", "512000,4100000,30")
+    assert at["R"] == pytest.approx(ref["R"], rel=0.02) and at["w"] == pytest.approx(
+        ref["w"], abs=0.01
+    )
+    code, _, err = run(capsys, "features", tmp_path / "m.npy", "--at", "1,2,x")
+    assert code == 2 and "expected X,Y or X,Y,YAW" in err

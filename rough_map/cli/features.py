@@ -19,9 +19,13 @@ from rough_map.cli._common import (
     patch_spec,
     table,
 )
+from rough_map.errors import InputError
 from rough_map.patch import Extraction, GriddedPatch, PatchSpec
 
 if TYPE_CHECKING:
+    import numpy as np
+    from numpy.typing import NDArray
+
     from rough_map.psd import PatchRoughness
 
 
@@ -55,6 +59,26 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="DEG",
         help="vehicle pitch in degrees: compensate tilt (paper Eq. 11)",
     )
+    cloud = p.add_argument_group("a cloud not in the vehicle frame or not in metres")
+    cloud.add_argument(
+        "--units",
+        choices=tuple(UNITS),
+        default="m",
+        help="units of the cloud's coordinates (a LAS/LAZ file with a CRS takes its own)",
+    )
+    cloud.add_argument(
+        "--columns",
+        type=_columns,
+        metavar="X,Y,Z",
+        help="for a text cloud: the header names or 1-based numbers of its x, y, z columns",
+    )
+    cloud.add_argument(
+        "--at",
+        type=_pose,
+        metavar="X,Y[,YAW]",
+        help="read a world-frame or georeferenced cloud as seen by a vehicle standing at X, Y "
+        "(m, in the cloud's frame or CRS) heading YAW degrees anticlockwise from +x (default 0)",
+    )
     add_psd_args(p)
     add_jobs_arg(p)
     add_allow_outside_arg(p)
@@ -81,19 +105,77 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+#: ``--units``: metres per unit.
+UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "ft": 0.3048, "us-ft": 1200.0 / 3937.0}
+
+
+def _columns(text: str) -> tuple[str, ...]:
+    parts = tuple(t.strip() for t in text.split(","))
+    if len(parts) != 3 or not all(parts) or len(set(p.lower() for p in parts)) != 3:
+        raise argparse.ArgumentTypeError(
+            f"expected three column names or numbers X,Y,Z, got {text!r:.60}"
+        )
+    return parts
+
+
+def _pose(text: str) -> tuple[float, float, float]:
+    try:
+        values = [float(t) for t in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) not in (2, 3) or not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(
+            f"expected X,Y or X,Y,YAW (m, m, degrees), got {text!r:.60}"
+        )
+    x, y, *yaw = values
+    return x, y, math.radians(yaw[0] if yaw else 0.0)
+
+
 def run(args: argparse.Namespace) -> int:
     from rough_map.io.traverse import TRAVERSE_FILES
 
     if args.source.is_dir() or args.source.name in TRAVERSE_FILES:
+        given = [o for o, v in (("--units", args.units != "m"), ("--columns", args.columns),
+                                ("--at", args.at)) if v]  # fmt: skip
+        if given:
+            raise InputError(
+                f"{' and '.join(given)} read one cloud; a traverse gives its frames' poses"
+            )
         from rough_map.cli._traverse_features import run_traverse
 
         return run_traverse(args)
     return run_cloud(args)
 
 
+def _load(args: argparse.Namespace) -> NDArray[np.float64]:
+    """The cloud of ``features CLOUD``, in m, in the vehicle frame (``--at`` moves a
+    world-frame one there: the patch ahead of a vehicle at that place and heading)."""
+    import numpy as np
+
+    from rough_map.io.pointcloud import read_cloud
+
+    points = read_cloud(args.source, columns=args.columns)
+    if args.units != "m":
+        if args.source.suffix.lower() in (".las", ".laz"):
+            from rough_map.io.las import read_las
+
+            if read_las(args.source).crs is not None:
+                raise InputError(
+                    f"{args.source.name}: its CRS gives its units; --units is for clouds "
+                    "without one"
+                )
+        points = points * UNITS[args.units]
+    if args.at is not None:
+        x, y, yaw = args.at
+        c, s = math.cos(yaw), math.sin(yaw)
+        dx, dy = points[:, 0] - x, points[:, 1] - y
+        z = points[:, 2] - np.median(points[:, 2])  # heights about the cloud's own level
+        points = np.column_stack([c * dx + s * dy, -s * dx + c * dy, z])
+    return points
+
+
 def run_cloud(args: argparse.Namespace) -> int:
     from rough_map.features import cloud_roughness
-    from rough_map.io.pointcloud import read_cloud
 
     extraction = Extraction(
         patch=patch_spec(args),
@@ -102,7 +184,7 @@ def run_cloud(args: argparse.Namespace) -> int:
         auto_spacing=args.spacing == "auto",
     )
     t0 = time.perf_counter()
-    points = read_cloud(args.source)
+    points = _load(args)
     t1 = time.perf_counter()
     tilt = args.roll is not None or args.pitch is not None
     grid, rough = cloud_roughness(

@@ -29,6 +29,7 @@ from __future__ import annotations
 import logging
 import re
 import warnings
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -70,13 +71,17 @@ class CloudWriter(Protocol):
 # Public API
 
 
-def read_cloud(path: PathLike) -> np.ndarray:
+def read_cloud(path: PathLike, *, columns: Sequence[str] | None = None) -> np.ndarray:
     """Read a point cloud file.
 
     Parameters
     ----------
     path : str or PathLike
         A file with one of the suffixes in ``READERS`` (case-insensitive).
+    columns : sequence of 3 str, optional
+        For a text cloud: the header names (case-insensitive) or 1-based numbers of the
+        columns that hold x, y and z. Default: the columns headed x, y, z, or the only
+        three, or the first three of a file without a header.
 
     Returns
     -------
@@ -88,10 +93,19 @@ def read_cloud(path: PathLike) -> np.ndarray:
     ------
     FileFormatError
         Unknown suffix, missing or empty file, truncated or corrupt content, wrong shape or
-        dtype, or no finite point.
+        dtype, no finite point, or a header whose columns are not x, y, z (without
+        ``columns``) or lack one of ``columns``.
+    InputError
+        ``columns`` for a format that is not text, or not three names or numbers.
     """
     path = Path(path)
     reader = READERS.get(path.suffix.lower())
+    if columns is not None:
+        picked = _check_columns(columns)
+        if reader is not _read_text:
+            raise InputError(f"{path.name}: columns pick the fields of text clouds only")
+        check_readable(path)
+        return _finite_xyz(path, _read_text(path, picked))
     if reader is None:
         known = ", ".join(sorted(READERS))
         raise FileFormatError(
@@ -241,8 +255,20 @@ _LOADTXT_WHERE = re.compile(
 )
 
 
-def _read_text(path: Path) -> np.ndarray:
-    """x, y, z from a delimited text file; a header naming x, y, z picks those columns."""
+def _check_columns(columns: Sequence[str]) -> tuple[str, str, str]:
+    """Three column names or 1-based numbers, or :class:`InputError`."""
+    picked = tuple(str(c).strip().lower() for c in columns) if not isinstance(columns, str) else ()
+    if len(picked) != 3 or not all(picked) or len(set(picked)) != 3:
+        raise InputError(
+            f"columns must name the x, y and z columns (3 distinct names or numbers); got "
+            f"{quote(columns, 60)}"
+        )
+    return picked[0], picked[1], picked[2]
+
+
+def _read_text(path: Path, columns: tuple[str, str, str] | None = None) -> np.ndarray:
+    """x, y, z from a delimited text file: the ``columns`` named (header names or 1-based
+    numbers), else those headed x, y, z, else the only three of a header."""
     first, line_no = "", 0
     with path.open("r", encoding="utf-8", errors="replace") as fh:
         while line := fh.readline(_MAX_LINE):
@@ -257,13 +283,37 @@ def _read_text(path: Path) -> np.ndarray:
     delimiter = "," if "," in first else ";" if ";" in first else None
     tokens = [t.strip().strip("\"'") for t in first.split(delimiter)]
     has_header = not all(_NUMBER.match(t) for t in tokens if t)
-    usecols = None
-    if has_header:
-        names = [t.lstrip("/#").strip().lower() for t in tokens]
-        if {"x", "y", "z"} <= set(names):
-            usecols = [names.index(c) for c in "xyz"]
+    names = [t.lstrip("/#").strip().lower() for t in tokens] if has_header else []
+    usecols = _text_columns(path, names, len(tokens), columns)
     return _loadtxt(
         path, delimiter=delimiter, skiprows=line_no + 1 if has_header else 0, usecols=usecols
+    )
+
+
+def _text_columns(
+    path: Path, names: list[str], n_columns: int, columns: tuple[str, str, str] | None
+) -> list[int] | None:
+    """0-based x, y, z columns of a text cloud whose header has ``names`` (none: no header)."""
+    if columns is not None:
+        out = []
+        for c in columns:
+            if c in names:
+                out.append(names.index(c))
+            elif c.isdigit() and 1 <= int(c) <= n_columns:
+                out.append(int(c) - 1)
+            else:
+                have = ", ".join(names) if names else f"{n_columns} columns, no header"
+                raise FileFormatError(path, f"no column {c!r} (has {quote(have, 80)})", "header")
+        return out
+    if not names or {"x", "y", "z"} <= set(names):
+        return [names.index(c) for c in "xyz"] if names else None
+    if len(names) == 3:
+        return None  # three named columns (e, n, h...): x, y, z in that order
+    raise FileFormatError(
+        path,
+        f"its header names {quote(', '.join(names), 60)}, none of them x, y and z: say which "
+        "columns are (features --columns X,Y,Z)",
+        field="header",
     )
 
 

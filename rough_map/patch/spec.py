@@ -159,7 +159,8 @@ def where_the_cloud_lies(points: np.ndarray, spec: PatchSpec) -> str:
     """For a cloud with (almost) no point over the patch, one short sentence: how many of its
     points are over the patch, where the patch was looked for and where the points are, in
     the vehicle frame (m), with a guess at why; "" when the patch holds at least one point in
-    a hundred, or the cloud has no finite point."""
+    a hundred, the cloud surrounds the patch (it is too sparse, not elsewhere), or it has
+    no finite point."""
     _check_spec(spec)
     pts = _as_cloud(points)
     pts = pts[np.isfinite(pts).all(axis=1)]
@@ -168,6 +169,8 @@ def where_the_cloud_lies(points: np.ndarray, spec: PatchSpec) -> str:
         return ""
     x1, y1 = spec.x0 + spec.n * spec.spacing, spec.y0 + spec.rows * spec.row_step
     lo, hi = pts.min(axis=0), pts.max(axis=0)
+    if lo[0] <= spec.x0 and hi[0] >= x1 and lo[1] <= spec.y0 and hi[1] >= y1:
+        return ""  # the cloud surrounds the patch: too sparse, not elsewhere
     centre, spread = 0.5 * np.abs(lo + hi)[:2].max(), (hi - lo)[:2].max()
     if centre > 1e3 and centre > 10 * spread:
         hint = ": a world-frame cloud? give it in the vehicle frame"
