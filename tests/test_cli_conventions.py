@@ -594,7 +594,7 @@ def test_ctrl_c_during_a_two_process_run_is_one_line(command: str, tmp_path: Pat
     exe = Path(sys.executable).with_name("rough-map")
     out = ["--out", str(tmp_path / ("m" if command == "map" else "f.csv"))]
     interrupted = 0
-    for delay in (1.0, 2.5):
+    for delay in (0.4, 0.6, 0.9, 1.5, 2.5):  # start-up, the workers importing, the frames
         proc = subprocess.Popen(
             [str(exe), command, str(trav), *out, "-j", "2"],
             stdout=subprocess.DEVNULL,

@@ -18,7 +18,10 @@ from __future__ import annotations
 import logging
 import math
 import os
+import signal
+import threading
 from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -388,9 +391,29 @@ def start_workers(n_jobs: int) -> None:
         return
     from joblib.externals.loky import get_reusable_executor
 
-    executor = get_reusable_executor(max_workers=workers - 1)
-    for _ in range(workers - 1):
-        executor.submit(_ready)
+    with children_ignore_sigint():
+        executor = get_reusable_executor(max_workers=workers - 1)
+        for _ in range(workers - 1):
+            executor.submit(_ready)
+
+
+@contextmanager
+def children_ignore_sigint() -> Iterator[None]:
+    """Processes started in this block ignore SIGINT, a disposition they inherit.
+
+    Ctrl-C reaches every process of the terminal's group. Only this one should act on it:
+    it stops with one line and exit status 130 and its pool shuts the workers down. A
+    worker that took it too would print its own traceback (one interrupted while importing,
+    25 lines) and leave loky's semaphores behind. Outside the main thread (where no signal
+    handler can be set) the block does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _ready() -> bool:
@@ -489,8 +512,9 @@ class FrameStream:
         if workers > 1 and len(chunks) > 1:
             from joblib.externals.loky import get_reusable_executor
 
-            self._executor = get_reusable_executor(max_workers=workers - 1)
-            self._submit(self._hold)
+            with children_ignore_sigint():
+                self._executor = get_reusable_executor(max_workers=workers - 1)
+                self._submit(self._hold)
 
     def _submit(self, upto: int) -> None:
         while len(self._futures) < upto:
