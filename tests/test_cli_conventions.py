@@ -605,10 +605,12 @@ def test_ctrl_c_during_a_two_process_run_is_one_line(command: str, tmp_path: Pat
         time.sleep(delay)
         os.killpg(proc.pid, signal.SIGINT)
         _, err = proc.communicate(timeout=120)
-        if proc.returncode == 0:
-            continue  # it finished first
+        if proc.returncode == 0 or (proc.returncode == -signal.SIGINT and "wrote" in err):
+            continue  # it finished first (or the signal came as it was exiting)
         assert proc.returncode == 130, err
-        assert err.strip() == "rough-map: interrupted", err
+        lines = err.strip().splitlines()  # a status line may come first, if it was that late
+        assert lines[-1] == "rough-map: interrupted" and len(lines) <= 2, err
+        assert "Traceback" not in err and "leaked" not in err, err
         interrupted += 1
     assert interrupted, "every run finished before the interrupt"
 
@@ -637,7 +639,7 @@ def test_a_cloud_in_other_units_columns_or_frame_reads_as_in_the_vehicle_frame(
     rows = np.column_stack([np.arange(len(pts)), pts])
     np.savetxt(text, rows[:, [0, 1, 2, 3]], delimiter=",", header="time,lon,lat,alt", comments="")
     code, _, err = run(capsys, "features", text)
-    assert code == 2 and "none of them x, y and z" in err and "--columns" in err
+    assert code == 2 and "has no x, y, z: name them (--columns X,Y,Z)" in err
     cols = _features_json(capsys, text, "--columns", "lon,lat,alt")
     assert cols["R"] == pytest.approx(ref["R"], rel=1e-5)
     yaw = math.radians(30.0)

@@ -307,12 +307,11 @@ def _text_columns(
         return out
     if not names or {"x", "y", "z"} <= set(names):
         return [names.index(c) for c in "xyz"] if names else None
-    if len(names) == 3:
-        return None  # three named columns (e, n, h...): x, y, z in that order
+    if len(names) <= 3:
+        return None  # three named columns (e, n, h...) are x, y, z; fewer: a shape error
     raise FileFormatError(
         path,
-        f"its header names {quote(', '.join(names), 60)}, none of them x, y and z: say which "
-        "columns are (features --columns X,Y,Z)",
+        f"header {quote(', '.join(names), 50)} has no x, y, z: name them (--columns X,Y,Z)",
         field="header",
     )
 
