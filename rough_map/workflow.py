@@ -229,7 +229,7 @@ def analyse(
             terrain_model.extraction_ if terrain_model is not None else None
         )
         reading = extraction if terrain_model is None else terrain_model.reading()
-        if frames is not None and (frames.settings.asked or frames.settings.extraction) != reading:
+        if frames is not None and frames.settings.requested != reading:
             raise ModelError(f"{model}: {_card_differs(frames.settings, reading)}")
         mapper = OnlineMapper(
             terrain_model,
@@ -318,8 +318,7 @@ def _frame_pass(
 def _card_differs(started: FramePass, model: Extraction) -> str:
     """Why a model's card is refused: the settings where the extraction the frames started
     on (from the card) differs from the model's."""
-    card = started.asked or started.extraction
-    a, b = (replace(x, auto_spacing=False).to_dict() for x in (card, model))
+    a, b = (replace(x, auto_spacing=False).to_dict() for x in (started.requested, model))
     diff = ", ".join(
         f"{k} {a.get(k)!r} against {b.get(k)!r}" for k in a | b if a.get(k) != b.get(k)
     )

@@ -221,6 +221,12 @@ class FramePass:
     features: bool = True
     asked: Extraction | None = None
 
+    @property
+    def requested(self) -> Extraction:
+        """The extraction asked for: :attr:`asked`, or :attr:`extraction` when the step
+        was not chosen for the traverse."""
+        return self.asked or self.extraction
+
     def __post_init__(self) -> None:
         if self.source not in SOURCES:
             raise InputError(f"source must be 'auto', 'cloud' or 'stereo', got {self.source!r}")
