@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -178,6 +178,7 @@ class OnlineMapper:
         self._track: list[tuple[float, float]] = []
         self._log_belief: NDArray[np.float64] | None = None
         self._last_xy: tuple[float, float] | None = None
+        self._late: tuple[Any, Any, dict[str, NDArray[Any]]] | None = None
 
     # -- one frame ---------------------------------------------------------------------
 
@@ -384,6 +385,8 @@ class OnlineMapper:
             valid = np.array([bool(row["valid"]) for row in rows])
             R = extra["R"] if "R" in extra else [r["R"] if r["valid"] else math.nan for r in rows]
             level_of = np.where(valid, self._levels(R), math.nan)
+        # kept for replay(): each frame's classes, level and roughness as fused here
+        self._late = (np.where(known[:, None], p, np.nan), level_of, extra)
         for i, row in enumerate(rows):
             if not row["valid"]:
                 continue
@@ -396,6 +399,46 @@ class OnlineMapper:
             fused: dict[str, Any] = {"probs": probs, "level": level, "count": False, **rough}
             self.tiles.fuse_patch(x, y, yaw, **fused)
             self.tiles.evict(x, y, self.window)
+
+    def replay(self, *, margin: float = 0.2) -> Iterator[tuple[float, GridMap]]:
+        """The map as it grew: after each valid frame, in order, the map around its patch
+        (its box plus ``margin`` m) as it then stood, with every observation of the frames
+        so far fused at once (roughness, the classes and levels of :meth:`fuse_classes`),
+        as ``(t, window)``; the heights (``elevation``) are not replayed.
+
+        The frames are fused again into tiles of their own (kept within :attr:`window` of
+        the vehicle, the rest on disk), so the map itself is left as it is; after the last
+        frame, the replayed sums are those of the map.
+        """
+        rows = self._collect.rows
+        p, level_of, extra = self._late if self._late is not None else (None, None, {})
+        replayed = TiledMap(
+            self.tiles.resolution,
+            self.classes,
+            crs=self.tiles.geometry.crs,
+            spec=self.extraction.patch,
+            tile_cells=self.tiles.tile_cells,
+            level_names=self.level_names,
+        )
+        try:
+            for i, row in enumerate(rows):
+                if not row["valid"]:
+                    continue
+                x, y, yaw = row["x"], row["y"], row["yaw"]
+                obs = _observation(
+                    row,
+                    None if p is None or not np.isfinite(p[i]).all() else p[i],
+                    math.nan if level_of is None else float(level_of[i]),
+                )
+                obs.update({k: float(v[i]) for k, v in extra.items()})
+                replayed.cover(x, y, yaw)
+                replayed.fuse_patch(x, y, yaw, **obs)
+                corners = patch_corners(x, y, yaw, self.extraction.patch)
+                lo, hi = corners.min(axis=0) - margin, corners.max(axis=0) + margin
+                yield float(row.get("t", math.nan)), replayed.window((*lo, *hi))
+                replayed.evict(x, y, self.window)
+        finally:
+            replayed.close()
 
     def finish(self, *, margin: float = 1.0) -> GridMap:
         """The whole map: estimate layers and ``elevation``, over every patch seen plus

@@ -8,20 +8,32 @@ and an installed wheel alike.
 
 from __future__ import annotations
 
+import os
 from importlib import resources
 from pathlib import Path
 
 from rough_map.errors import InputError
 
-__all__ = ["DEFAULT_MODEL", "config_file", "model_base", "shipped_models"]
+__all__ = [
+    "DEFAULT_MODEL",
+    "USER_MODELS_ENV",
+    "config_file",
+    "in_package_models",
+    "model_base",
+    "shipped_models",
+    "user_models_dir",
+]
 
 #: Name of the terrain model used when none is given.
 DEFAULT_MODEL = "default"
 
 _MODEL_SUFFIX = ".skops"
-#: The models rough_map ships. Any other file in ``models/`` is a user's (``train --out
-#: models/mine`` in a checkout): it is not listed as shipped, and the wheel leaves it out.
+#: The models rough_map ships. A user's own models live in the user models folder
+#: (:func:`user_models_dir`), never in the package: ``train`` refuses to write any other
+#: name into ``models/``, and the wheel packs only these.
 SHIPPED_MODELS = ("default",)
+#: Environment variable naming the user models folder.
+USER_MODELS_ENV = "ROUGH_MAP_MODELS"
 
 
 def _folder(name: str) -> Path:
@@ -34,6 +46,24 @@ def shipped_models() -> list[str]:
     """Names of the models shipped with rough_map (:data:`SHIPPED_MODELS` that are there)."""
     folder = _folder("models")
     return [n for n in SHIPPED_MODELS if (folder / (n + _MODEL_SUFFIX)).is_file()]
+
+
+def user_models_dir() -> Path:
+    """The folder of the user's own models: ``$ROUGH_MAP_MODELS``, else
+    ``$XDG_DATA_HOME/rough_map/models`` (``~/.local/share/rough_map/models``). Not created
+    here: ``train`` creates it when it writes a model there."""
+    given = os.environ.get(USER_MODELS_ENV, "").strip()
+    if given:
+        return Path(given).expanduser()
+    data = os.environ.get("XDG_DATA_HOME", "").strip() or str(Path("~/.local/share").expanduser())
+    return Path(data) / "rough_map" / "models"
+
+
+def in_package_models(path: Path) -> bool:
+    """Whether ``path`` (a model name as a path) lies in the package's ``models/`` folder
+    (or the checkout's top-level ``models/``, which it links to)."""
+    folder = _folder("models").resolve()
+    return Path(os.path.abspath(path)).parent.resolve() == folder
 
 
 def model_base(name: str = DEFAULT_MODEL) -> Path:

@@ -33,6 +33,7 @@ from rough_map.evaluation.truth import truth_accuracy
 from rough_map.export import export_map
 from rough_map.export.labels import write_labels
 from rough_map.export.png import write_pngs
+from rough_map.export.vector import write_path_geojson
 from rough_map.features import (
     FeatureTable,
     FramePass,
@@ -62,7 +63,10 @@ log = logging.getLogger(__name__)
 MAP_OUTPUTS = (
     "map.tif",
     "map_*.tif",
+    "map_*.tif.aux.xml",
+    "map_*.qml",
     "map_*.png",
+    "map_path.geojson",
     "map_gridmap",
     "features.csv",
     "features.csv.json",
@@ -492,11 +496,16 @@ def _write_outputs(
             png=False,
             gridmap_bag=gridmap_bag,
             threads=1 if png else 2,
+            # the bag replays the map as it grew, one message per frame fused
+            gridmap_updates=result.mapper.replay() if gridmap_bag and result.mapper else (),
         )
         pngs = write_pngs(grid, out, "map", progress=progress) if png else {}
         written = files.result()
     written.update({f"png_{name}": path for name, path in pngs.items()})
     written.update(write_tables(result, out))
+    written["path_geojson"] = write_path_geojson(
+        result.features, grid.crs, out / "map_path.geojson", result.prediction
+    )
     if state and result.mapper is not None:
         written["state"] = result.mapper.save_state(out / "map_state.npz")
     return written

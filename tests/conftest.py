@@ -23,6 +23,21 @@ def dense_cloud():
     return make
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _user_models_in_a_temporary_folder(tmp_path_factory):
+    """Models trained by name go to a folder of the test session, not the user's."""
+    import os
+
+    folder = tmp_path_factory.mktemp("user_models")
+    saved = os.environ.get("ROUGH_MAP_MODELS")
+    os.environ["ROUGH_MAP_MODELS"] = str(folder)
+    yield folder
+    if saved is None:
+        os.environ.pop("ROUGH_MAP_MODELS", None)
+    else:
+        os.environ["ROUGH_MAP_MODELS"] = saved
+
+
 @pytest.fixture(autouse=True)
 def _restore_cli_logging():
     """``rough_map.cli.main.main`` configures the 'rough_map' logger; undo it per test."""

@@ -333,3 +333,30 @@ def test_train_does_not_replace_a_model_without_force(sim, trained, capsys) -> N
     code = main(["-q", "train", str(sim["train_a"]), str(sim["train_b"]), "--out", str(trained),
                  "--cv", "2", "--force"])  # fmt: skip
     assert code == 0 and model_file.exists()
+
+
+def test_user_models_live_in_the_user_models_folder(sim, trained, capsys, tmp_path) -> None:
+    """A bare --out name goes to $ROUGH_MAP_MODELS (the tests' own folder), and --model takes
+    it back by name; a model of one's own is refused in the package's models/ (issue 30)."""
+    import shutil
+
+    from rough_map.cli.train import model_target
+    from rough_map.resources import model_base, user_models_dir
+
+    folder = user_models_dir()
+    assert "user_models" in str(folder)  # tests/conftest.py keeps it out of the home folder
+    assert model_target(Path("mine")) == folder / "mine" and folder.is_dir()
+    assert model_target(tmp_path / "m") == tmp_path / "m"
+    for suffix in (".skops", ".card.json"):
+        shutil.copy(trained.with_name(trained.name + suffix), folder / f"mine{suffix}")
+    code, _, err = run(capsys, "classify", sim["v05"], "--model", "mine", "--out",
+                         tmp_path / "l.csv", "-q")  # fmt: skip
+    assert code == 0 and err == "" and (tmp_path / "l.csv").exists()
+    package = model_base().parent / "mine"
+    code, _, err = run(capsys, "train", sim["train_a"], "--out", package)
+    assert code == 2 and len(err.splitlines()) == 1
+    assert "models/ holds only the shipped models" in err and "--out mine" in err
+    assert not package.with_suffix(".skops").exists()
+    code, _, err = run(capsys, "classify", sim["v05"], "--model", "nobody", "--out",
+                       tmp_path / "x.csv")  # fmt: skip
+    assert code != 0 and str(folder) in err

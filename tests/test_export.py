@@ -154,7 +154,7 @@ def test_class_band_colour_table_and_names(tmp_path, utm_map):
         assert ds.descriptions == ("class",)
         assert ds.colorinterp[0] == rasterio.enums.ColorInterp.palette
         table = ds.colormap(1)
-        assert table[0] == (160, 160, 160, 255) and table[255][3] == 0
+        assert table[0] == (*CLASS_COLOURS["concrete"], 255) and table[255][3] == 0
         assert len({table[i] for i in range(3)}) == 3
         tags = ds.tags(1)
         assert json.loads(tags["class_names"]) == list(NAMES)

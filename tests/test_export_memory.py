@@ -110,8 +110,9 @@ def test_written_in_small_windows_the_file_holds_all_bands_at_once(tmp_path, mon
     write_class_geotiff(g, tmp_path / "c.tif")
     all_at_once(g, tmp_path / "ref_c.tif", "class")
     assert_same_pixels(tmp_path / "c.tif", tmp_path / "ref_c.tif")
-    # the intermediate file is gone
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.tif", "m.tif", "ref.tif", "ref_c.tif"]
+    # the intermediate file is gone; the class file has its category names and QGIS style
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "c.qml", "c.tif", "c.tif.aux.xml", "m.tif", "ref.tif", "ref_c.tif"]  # fmt: skip
 
 
 def test_window_size_does_not_change_the_file(tmp_path, monkeypatch):

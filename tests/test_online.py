@@ -116,6 +116,46 @@ def test_map_is_the_table_fusion_with_spilled_tiles(small_traverse: Path, model)
     assert np.isfinite(result.map["elevation"]).sum() > 10
 
 
+@pytest.mark.parametrize("roughness", ["raw", "smoothed"])
+def test_the_replay_grows_into_the_map(small_traverse: Path, model, roughness) -> None:
+    """One window per valid frame, in time order; the map grows, and the last window reads
+    what the final map reads over it (the replay fuses the same observations)."""
+    result = analyse(small_traverse, model, near_far=False, roughness=roughness)
+    assert result.mapper is not None
+    updates = list(result.mapper.replay())
+    assert len(updates) == int(result.features.valid.sum())
+    times = [t for t, _ in updates]
+    assert times == sorted(times)
+    grid = result.map
+    _, last = updates[-1]
+    rows, cols = np.nonzero(np.isfinite(last["R"]))
+    x0, y0 = last.geometry.origin
+    res = last.resolution
+    r, c = grid.cells_at(x0 + (cols + 0.5) * res, y0 + (rows + 0.5) * res, grow=False).T
+    for layer in ("R", "w", "class", "level", "count", "p_gravel"):
+        assert np.allclose(last[layer][rows, cols], grid[layer][r, c], equal_nan=True), layer
+    # the first window knows less than the same cells do at the end
+    first = updates[0][1]
+    fx, fy = first.geometry.origin
+    fr, fc = np.nonzero(np.isfinite(first["count"]) & (first["count"] > 0))
+    gr, gc = grid.cells_at(fx + (fc + 0.5) * res, fy + (fr + 0.5) * res, grow=False).T
+    assert np.all(first["count"][fr, fc] <= grid["count"][gr, gc])
+    assert np.any(first["count"][fr, fc] < grid["count"][gr, gc])
+
+
+def test_map_bag_has_one_gridmap_per_update(small_traverse: Path, model, tmp_path) -> None:
+    from rough_map.export.gridmap_msg import read_gridmap_bag
+
+    result = analyse(small_traverse, model, near_far=False)
+    paths = write_outputs(result, tmp_path / "out", png=False, gridmap_bag=True)
+    messages = read_gridmap_bag(paths["gridmap_bag"])
+    valid = int(result.features.valid.sum())
+    assert len(messages) == valid + 1  # each frame fused, then the whole map
+    assert all(m.basic_layers == ("R",) for m in messages)
+    assert "elevation" not in messages[0].layers and "elevation" in messages[-1].layers
+    assert messages[-1].size == (result.map.shape[1], result.map.shape[0])
+
+
 def test_small_tiles_and_window_change_nothing(small_traverse: Path, model, monkeypatch) -> None:
     ref = analyse(small_traverse, model, near_far=False).map
     init = OnlineMapper.__init__

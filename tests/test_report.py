@@ -115,6 +115,12 @@ def test_every_figure_has_a_caption(report):
         assert len(img["figure"]["caption"].split()) >= 12, img  # a sentence, not a name
 
 
+def test_the_report_leads_with_the_map(report):
+    _, page = parse(report)
+    assert page.tags.index("figure") < page.tags.index("table")  # figures, then tables
+    assert page.images[0]["src"] == "fig_map_class.png"
+
+
 def test_report_links_geotiffs_layer_pngs_and_tables(report):
     _, page = parse(report)
     out = report.parent
@@ -177,11 +183,16 @@ def test_a_wide_table_scrolls_in_its_own_box(report):
 @needs_chromium
 def test_the_checker_finds_what_is_wrong(tmp_path):
     (tmp_path / "ok.png").write_bytes(_png())
+    (tmp_path / "tall.png").write_bytes(_png((5000, 2)))
+    (tmp_path / "huge.png").write_bytes(_png((2, 3000)))
     (tmp_path / "index.html").write_text(
         "<!doctype html><html><head><meta charset='utf-8'><title>bad</title></head><body>"
         "<h1>bad</h1><div style='width:3000px'>wide</div>"
         "<figure><img src='ok.png' alt=''><figcaption>fine</figcaption></figure>"
         "<img src='missing.png' alt=''>"
+        "<figure><img src='tall.png' alt=''><figcaption>tall</figcaption></figure>"
+        "<figure><img src='huge.png' alt='' style='max-width:100%'><figcaption>wide"
+        "</figcaption></figure>"
         "<a href='nowhere.tif'>x</a><a href='#nope'>y</a>"
         "<p>AccuracyTable(edges=array([0. , 1.5]))</p></body></html>",
         encoding="utf-8",
@@ -194,14 +205,16 @@ def test_the_checker_finds_what_is_wrong(tmp_path):
     assert "image 'missing.png' has no <figure>" in text and "'ok.png'" not in text
     assert "nowhere.tif" in text and "no element with id 'nope'" in text
     assert "Python repr" in text
+    assert "'tall.png' is 5000 px tall, more than 6 screens" in text
+    assert "'huge.png' is shown" in text and "under half its 3000 px" in text
 
 
-def _png() -> bytes:
-    """A 2 x 2 grey PNG."""
+def _png(shape: tuple[int, int] = (2, 2)) -> bytes:
+    """A grey PNG of ``shape`` (rows, columns) pixels."""
     import io
 
     import matplotlib.image as mpimg
 
     buf = io.BytesIO()
-    mpimg.imsave(buf, np.full((2, 2), 0.5), cmap="gray", format="png")
+    mpimg.imsave(buf, np.full(shape, 0.5), cmap="gray", format="png")
     return buf.getvalue()

@@ -211,6 +211,26 @@ def test_random_course_has_all_classes():
     assert segs[-1].end == pytest.approx(200.0)
 
 
+def test_simulate_replaces_its_outputs_as_a_set(tmp_path, capsys):
+    """One --out rule: simulating into an existing folder replaces the traverse as a set
+    and keeps the user's files."""
+    from rough_map.cli.main import main
+    from rough_map.io.traverse import load_traverse
+
+    out = tmp_path / "sim"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    base = ["-q", "simulate", "--out", str(out), "--length", "3", "--no-images"]
+    assert main([*base, "--course", "mixed", "--seed", "1"]) == 0
+    assert main([*base, "--course", "compact", "--seed", "2"]) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == str(out / "traverse.json")
+    trav = load_traverse(out)
+    assert trav.name == "sim-compact-seed2" and (out / "notes.txt").read_text() == "mine"
+    assert {f.label for f in trav.frames} == {"compact_soil"}
+    trav.validate_files()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sim"]
+
+
 def test_bad_simulator_input(tmp_path, mixed):
     from rough_map.errors import InputError
 

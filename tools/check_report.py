@@ -11,7 +11,8 @@ Opens the page in headless Chromium at each window size (default 1366x768, a lap
 * nothing makes it scroll sideways: ``document.documentElement.scrollWidth <=
   clientWidth`` (a wide table must scroll inside its own box); the elements that stick out
   are named when it fails;
-* every image resolves (``img.complete && img.naturalWidth > 0``) and sits in a
+* every image resolves (``img.complete && img.naturalWidth > 0``), is shown at least half
+  its width (its text stays readable) and is at most 6 window heights tall, and sits in a
   ``<figure>`` with a non-empty ``<figcaption>``;
 * every local link (``href``/``src`` without a scheme, or ``file:``) names a file that
   exists, and every ``#fragment`` an element of the page with that id;
@@ -95,6 +96,7 @@ PROBE = r"""
       src: img.getAttribute('src') || '',
       complete: img.complete,
       naturalWidth: img.naturalWidth,
+      naturalHeight: img.naturalHeight,
       shownWidth: Math.round(img.getBoundingClientRect().width),
       caption: cap ? cap.textContent.trim() : null,
     };
@@ -118,6 +120,9 @@ PROBE = r"""
   };
 })()
 """
+
+#: The tallest picture, in window heights.
+MAX_SCREENS = 6
 
 REPR = re.compile(r"\barray\(|\b[A-Z]\w*\(\w+=")
 
@@ -300,6 +305,13 @@ def check(page: Path, findings: list[dict]) -> list[str]:
         for img in f["images"]:
             if not (img["complete"] and img["naturalWidth"] > 0):
                 bad.append(f"{at}: image {img['src']!r} does not load")
+            elif img["shownWidth"] < 0.5 * img["naturalWidth"]:
+                bad.append(f"{at}: image {img['src']!r} is shown {img['shownWidth']} px wide, "
+                           f"under half its {img['naturalWidth']} px: its text is too small "
+                           "to read")  # fmt: skip
+            elif img["naturalHeight"] > MAX_SCREENS * f["size"][1]:
+                bad.append(f"{at}: image {img['src']!r} is {img['naturalHeight']} px tall, "
+                           f"more than {MAX_SCREENS} screens")  # fmt: skip
     first = findings[0]
     for img in first["images"]:
         if not img["caption"]:

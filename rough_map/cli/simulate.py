@@ -151,7 +151,14 @@ def _add_recording_args(p: argparse.ArgumentParser) -> None:
     )
 
 
+#: What ``simulate`` writes at the top of ``--out``: an existing folder has these replaced as
+#: a set, the user's other files kept.
+SIMULATE_OUTPUTS = ("traverse.json", "traverse.yaml", "traverse.yml", "clouds", "left", "right",
+                    "world_truth*")  # fmt: skip
+
+
 def run(args: argparse.Namespace) -> int:
+    from rough_map._output_set import output_set
     from rough_map.simulate.course import SensorSpec, simulate
 
     if args.bag is not None and args.bag.exists():
@@ -160,24 +167,28 @@ def run(args: argparse.Namespace) -> int:
     sensor = SensorSpec(
         points_per_cell=args.points_per_cell, noise=args.noise, cloud_half_extent=args.cloud_extent
     )
-    path = simulate(
-        args.out,
-        args.course,
-        length=args.length,
-        speed=args.speed,
-        rate=args.rate,
-        seed=args.seed,
-        images=not args.no_images,
-        image_every=args.image_every,
-        width=args.width,
-        sensor=sensor,
-        compress=args.compress,
-        progress=args.progress,
-    )
+    # an existing --out has the traverse replaced as a set: staged beside it, swapped in whole
+    with output_set(args.out, owned=SIMULATE_OUTPUTS) as stage:
+        staged = simulate(
+            stage,
+            args.course,
+            length=args.length,
+            speed=args.speed,
+            rate=args.rate,
+            seed=args.seed,
+            images=not args.no_images,
+            image_every=args.image_every,
+            width=args.width,
+            sensor=sensor,
+            compress=args.compress,
+            progress=args.progress,
+        )
+        truth = None if args.no_truth_geotiff else _write_truth_geotiff(stage)
+    path = args.out / staged.relative_to(stage)
     print(path)
     status(args, f"simulated the {args.course} course into {args.out}")
-    if not args.no_truth_geotiff:
-        written = _write_truth_geotiff(args.out)
+    if truth is not None:
+        written = args.out / truth.relative_to(stage)
         status(args, f"wrote its true classes to {written} (for rough-map score --truth)")
     if args.bag is not None:
         from rough_map.io.rosbag import write_example_bag

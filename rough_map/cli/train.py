@@ -1,4 +1,4 @@
-"""``rough-map train TRAVERSE... --out models/NAME``: fit a terrain model and write its card.
+"""``rough-map train TRAVERSE... --out NAME``: fit a terrain model and write its card.
 
 For every traverse the features of the patch ahead are computed from its clouds (or read
 from a features table written by ``rough-map features``); the classifier is
@@ -71,8 +71,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--out",
         type=Path,
         required=True,
-        metavar="models/NAME",
-        help="model name: writes NAME.skops and NAME.card.json",
+        metavar="NAME|PATH",
+        help="the model: a bare NAME goes to the user models folder ($ROUGH_MAP_MODELS, "
+        "default ~/.local/share/rough_map/models) and is then used as --model NAME; a "
+        "path (dir/NAME) writes dir/NAME.skops and dir/NAME.card.json",
     )
     p.add_argument(
         "--force",
@@ -124,6 +126,7 @@ def run(args: argparse.Namespace) -> int:
     from rough_map.features import feature_tables, write_features
     from rough_map.filter import make_terrain_model
 
+    args.out = model_target(args.out)
     _check_new_model(args.out, args.force)
     levels = load_roughness_levels(args.levels)
     _check_labelled(args.traverses)
@@ -191,6 +194,26 @@ def _check_labelled(sources: list[Path]) -> None:
                 f"traverse {traverse.name!r} ({src}) has no labelled frames; training needs a "
                 "terrain class ('label') on the frames"
             )
+
+
+def model_target(out: Path) -> Path:
+    """Where ``train --out`` writes: a bare name in the user models folder, a path as it
+    is; never a model of the user's in the package's ``models/`` (which holds the shipped
+    ones, retrained with their own names)."""
+    from rough_map.resources import SHIPPED_MODELS, in_package_models, user_models_dir
+
+    text = str(out)
+    if out.name == text and not text.endswith((".skops", ".card.json")):
+        folder = user_models_dir()
+        folder.mkdir(parents=True, exist_ok=True)
+        return folder / text
+    name = out.name.removesuffix(".skops").removesuffix(".card.json")
+    if in_package_models(out) and name not in SHIPPED_MODELS:
+        raise InputError(
+            f"{out.name}: models/ holds only the shipped models ({', '.join(SHIPPED_MODELS)}); "
+            f"train yours by name (--out {name}: into the user models folder) or to a path"
+        )
+    return out
 
 
 def _check_new_model(out: Path, force: bool) -> None:

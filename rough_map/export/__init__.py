@@ -11,6 +11,7 @@ libraries (rasterio, matplotlib, rosbags) are imported only when a writer runs.
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterable
 from pathlib import Path
 
 from rough_map._files import make_dir
@@ -38,6 +39,7 @@ def export_map(
     png: bool = True,
     gridmap_bag: bool = False,
     threads: int = 2,
+    gridmap_updates: Iterable[tuple[float, GridMap]] = (),
 ) -> dict[str, Path]:
     """Write a map's files to ``out_dir`` (created if missing).
 
@@ -52,17 +54,22 @@ def export_map(
     png : bool
         Also draw one PNG per exported layer.
     gridmap_bag : bool
-        Also write a ``grid_map_msgs/msg/GridMap`` in a ROS 2 MCAP bag.
+        Also write ``grid_map_msgs/msg/GridMap`` messages in a ROS 2 MCAP bag: one per
+        update of ``gridmap_updates``, then the whole map.
     threads : int
         GDAL threads compressing each GeoTIFF (the profiles' ``threads``; one when
         something else keeps the other core busy). The files are the same for any number.
+    gridmap_updates : iterable of (float, GridMap)
+        The map around each update as it then stood, with its time in s
+        (:meth:`rough_map.online.OnlineMapper.replay`), for the bag.
 
     Returns
     -------
     dict of str to Path
         ``"geotiff"``: ``<name>.tif`` (float32 value layers);
         ``"geotiff_<layer>"``: ``<name>_<layer>.tif`` per class layer (``class``,
-        ``far_class``; uint8 with colour table);
+        ``far_class``; uint8 with colour table), with ``"categories_<layer>"``, GDAL's
+        ``.tif.aux.xml`` of its category names, and ``"qgis_style_<layer>"``, its ``.qml``;
         ``"png_<layer>"``: ``<name>_<layer>.png`` per layer;
         ``"gridmap_bag"``: the bag folder ``<name>_gridmap``.
     """
@@ -75,13 +82,16 @@ def export_map(
     if value_layers(grid):
         paths["geotiff"] = write_values_geotiff(grid, out / f"{name}.tif", profile=profile)
     for layer in class_layers(grid):
-        paths[f"geotiff_{layer}"] = write_class_geotiff(
-            grid, out / f"{name}_{layer}.tif", layer, profile=profile
-        )
+        tif = write_class_geotiff(grid, out / f"{name}_{layer}.tif", layer, profile=profile)
+        paths[f"geotiff_{layer}"] = tif
+        paths[f"categories_{layer}"] = Path(f"{tif}.aux.xml")
+        paths[f"qgis_style_{layer}"] = tif.with_suffix(".qml")
     if png:
         for layer, p in write_pngs(grid, out, name).items():
             paths[f"png_{layer}"] = p
     if gridmap_bag:
-        paths["gridmap_bag"] = write_gridmap_bag(grid, out / f"{name}_gridmap")
+        paths["gridmap_bag"] = write_gridmap_bag(
+            grid, out / f"{name}_gridmap", updates=gridmap_updates
+        )
     log.info("exported map %r: %d files in %s", name, len(paths), out)
     return paths

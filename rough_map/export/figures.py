@@ -219,7 +219,9 @@ def _r_panel(
 
 
 def _shade_classes(ax1: Any, ax2: Any, d: np.ndarray, labels: Sequence[str]) -> None:
-    """Shade both panels by class along the path; the top panel's legend names them."""
+    """Shade both panels by class along the path, with a band of the class colours at
+    full strength along the bottom of each (pale tints alone lose the palette's lightness
+    steps); the top panel's legend names them."""
     names = list(dict.fromkeys(labels))
     for k, name in enumerate(names):
         sel = np.asarray(labels) == name
@@ -227,17 +229,10 @@ def _shade_classes(ax1: Any, ax2: Any, d: np.ndarray, labels: Sequence[str]) -> 
             continue
         c = _rgb01(name, k)
         for ax in (ax1, ax2):
-            ax.fill_between(
-                d,
-                0,
-                1,
-                where=sel,
-                color=c,
-                alpha=0.15,
-                transform=ax.get_xaxis_transform(),
-                step="mid",
-                label=name if ax is ax1 else None,
-            )
+            kw: dict[str, Any] = {"where": sel, "color": c, "step": "mid", "linewidth": 0}
+            kw["transform"] = ax.get_xaxis_transform()
+            ax.fill_between(d, 0, 1, alpha=0.12, **kw)
+            ax.fill_between(d, 0, 0.045, label=name if ax is ax1 else None, **kw)
 
 
 def profile_psd_fit(
@@ -417,6 +412,7 @@ def map_layers(
             label=labels.get(name, name),
             view=view,
             track=path_xy,
+            known=known,
         )
         if name == "class" and class_names:
             panel.categories = tuple(class_names)
@@ -425,7 +421,8 @@ def map_layers(
             panel.categories = ("low", "medium", "high")
             panel.colours = _LEVEL_RGB
         panels.append(panel)
-    fig = draw_map_panels(panels, width=9.0, dpi=110)
+    # several layers stacked: at most 4 pages each, so the figure stays a few screens tall
+    fig = draw_map_panels(panels, width=9.0, dpi=110, max_pages=4)
     return _save(fig, path, layout=False)
 
 

@@ -11,12 +11,14 @@ map becomes (profiles in :mod:`rough_map.export.profiles`):
 ``<name>_class.tif``, ``<name>_far_class.tif``
     uint8, one band described ``class`` (``far_class``): the class index, with a colour
     table, the class names in tags (``class_names`` as JSON and ``CLASS_<i>=<name>``).
-    Nodata: 255.
+    Nodata: 255. Beside it, GDAL's ``.tif.aux.xml`` with the category names and a raster
+    attribute table, and a QGIS style ``.qml`` (:mod:`rough_map.export.sidecars`).
 
 Rows are north-up (the map's rows flipped); the geotransform puts the map's south-west
 corner at its origin. The CRS is the traverse's EPSG code; for a local frame with a
 geodetic origin, a transverse Mercator centred on that origin; without origin, a local
-engineering CRS (``LOCAL_CS``, metres). Dataset tags give ``crs_code``, ``frame_id``,
+engineering CRS (``LOCAL_CS``, metres). Dataset tags give ``layers`` (the layers of the
+file's bands, in order), ``crs_code``, ``frame_id``,
 ``geodetic_origin`` (JSON ``[lat, lon, alt]``), ``class_names``, ``level_names``.
 
 Files are written to a temporary name, checked (the GeoTIFF reopens and its last block
@@ -49,6 +51,7 @@ from rough_map.export.profiles import (
     ValuesProfile,
     class_colour,
 )
+from rough_map.export.sidecars import write_category_names, write_qgis_style
 from rough_map.map.grid import GridMap
 
 log = logging.getLogger(__name__)
@@ -111,11 +114,12 @@ def class_colours(names: Sequence[str]) -> dict[int, tuple[int, int, int, int]]:
     return table
 
 
-def _dataset_tags(grid: GridMap) -> dict[str, str]:
+def _dataset_tags(grid: GridMap, bands: Sequence[str]) -> dict[str, str]:
+    """The dataset tags of a file whose bands are the layers ``bands``, in order."""
     crs = grid.crs
     tags = {
         "software": f"rough_map {__version__}",
-        "layers": json.dumps([n for n in grid.layers if grid.info(n).kind != "internal"]),
+        "layers": json.dumps(list(bands)),
         "crs_code": crs.code,
         "frame_id": grid.geometry.frame_id,
         "resolution_m": repr(grid.resolution),
@@ -220,6 +224,7 @@ def _write(
     cells: _CellReader,
     profile: Mapping[str, Any],
     describe: Callable[[Any], None],
+    bands: Sequence[str],
 ) -> Path:
     """Write ``count`` bands of the map's shape, read a window at a time by ``cells``, to
     ``path`` as COG (or tiled GTiff) with overviews.
@@ -272,7 +277,7 @@ def _write(
                     for r0, r1, c0, c1 in _chunks((height, width), block, cell_bytes):
                         window = Window(c0, r0, c1 - c0, r1 - r0)
                         ds.write(cells(r0, r1, c0, c1), window=window)
-                    ds.update_tags(**_dataset_tags(grid))
+                    ds.update_tags(**_dataset_tags(grid, bands))
                     describe(ds)
                     ds.build_overviews(
                         overview_factors((height, width), int(profile["overview_min_size"])),
@@ -341,7 +346,7 @@ def write_values_geotiff(
                 tags.update({f"VALUE_{i}": c for i, c in enumerate(info.categories)})
             ds.update_tags(b, **tags)
 
-    return _write(grid, path, len(names), cells, prof, describe)
+    return _write(grid, path, len(names), cells, prof, describe, names)
 
 
 def write_class_geotiff(
@@ -396,4 +401,8 @@ def write_class_geotiff(
         )
         ds.write_colormap(1, class_colours(names))
 
-    return _write(grid, path, 1, cells, prof, describe)
+    written = _write(grid, path, 1, cells, prof, describe, [layer])
+    colours = [class_colour(n, i) for i, n in enumerate(names)]
+    write_category_names(written, names, colours)
+    write_qgis_style(written, names, colours)
+    return written

@@ -1,5 +1,5 @@
-"""A map as a ROS 2 ``grid_map_msgs/msg/GridMap`` in an MCAP bag (rosbags), for RViz and
-Foxglove.
+"""A map as ROS 2 ``grid_map_msgs/msg/GridMap`` messages in an MCAP bag (rosbags), for RViz
+and Foxglove: one per update of the map as it grew, then the whole map.
 
 The message definitions are those of grid_map's ROS 2 packages, registered in a rosbags
 typestore with :func:`rosbags.typesys.get_types_from_msg` (no ROS install needed). Each
@@ -15,6 +15,8 @@ import logging
 import math
 import os
 import tempfile
+from collections.abc import Iterable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -182,6 +184,13 @@ def message_to_grid_map(msg: Any) -> GridMapData:
     )
 
 
+def _stamp(t: float, after: int) -> int:
+    """``t`` s as ns since the epoch, never before ``after`` (NaN: ``after``)."""
+    if not math.isfinite(t):
+        return after
+    return max(after, int(round(max(t, 0.0) * 1e9)))
+
+
 def write_gridmap_bag(
     grid: GridMap,
     path: str | Path,
@@ -189,8 +198,11 @@ def write_gridmap_bag(
     topic: str = TOPIC,
     layers: list[str] | tuple[str, ...] | None = None,
     stamp_ns: int | None = None,
+    updates: Iterable[tuple[float, GridMap]] = (),
+    basic_layers: tuple[str, ...] = ("R",),
 ) -> Path:
-    """Write a map as one GridMap message in a ROS 2 bag with MCAP storage.
+    """Write a map as GridMap messages in a ROS 2 bag with MCAP storage: one per update of
+    the map as it grew, then the whole map.
 
     Parameters
     ----------
@@ -199,12 +211,21 @@ def write_gridmap_bag(
     path : str or Path
         The bag folder to write (replaced if it exists; its parent must exist).
     topic : str
-        Topic of the message.
+        Topic of the messages.
     layers : sequence of str, optional
         Layers to publish (default: every layer that is not internal).
     stamp_ns : int, optional
-        Message time, ns since the epoch (default: the latest ``last_seen`` of the map,
-        else 0).
+        Time of the whole map's message, ns since the epoch (default: the latest
+        ``last_seen`` of the map, else 0; never before the last update).
+    updates : iterable of (float, GridMap)
+        The map around each update as it then stood, with its time in s
+        (:meth:`rough_map.online.OnlineMapper.replay`): one message each, before the whole
+        map, so that a viewer replays how the map grew (RViz's grid_map display with a
+        history length keeps the earlier ones on screen). Their layers are those of
+        ``layers`` that the window has (``elevation`` is not replayed).
+    basic_layers : tuple of str
+        grid_map's basic layers (a cell is valid where they are all known), those of them
+        that each message has.
 
     Returns
     -------
@@ -216,22 +237,34 @@ def write_gridmap_bag(
     path = Path(path)
     if not path.parent.is_dir():
         raise FileFormatError(path, f"cannot write: folder {path.parent} does not exist")
-    if stamp_ns is None:
-        seen = grid["last_seen"] if "last_seen" in grid else np.array([np.nan])
-        latest = float(np.nanmax(seen)) if np.any(np.isfinite(seen)) else 0.0
-        stamp_ns = int(round(max(latest, 0.0) * 1e9)) if math.isfinite(latest) else 0
+    names = list(layers) if layers is not None else None
     store = grid_map_typestore()
-    msg = grid_map_message(to_grid_map(grid, layers), store, stamp_ns=stamp_ns)
+    count, last = 0, 0
     with tempfile.TemporaryDirectory(dir=path.parent, prefix=f".{path.name}.") as tmp:
         staged = Path(tmp) / path.name
         with Writer(staged, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
             conn = writer.add_connection(topic, GRID_MAP, typestore=store)
+            for t, window in updates:
+                shown = [n for n in (names or grid.layers) if n in window.layers]
+                shown = [n for n in shown if window.info(n).kind != "internal" and n != "elevation"]
+                basic = tuple(b for b in basic_layers if b in shown)
+                last = _stamp(t, last)
+                msg = grid_map_message(to_grid_map(window, shown, basic), store, stamp_ns=last)
+                writer.write(conn, last, store.serialize_cdr(msg, GRID_MAP))
+                count += 1
+            if stamp_ns is None:
+                seen = grid["last_seen"] if "last_seen" in grid else np.array([np.nan])
+                latest = float(np.nanmax(seen)) if np.any(np.isfinite(seen)) else math.nan
+                stamp_ns = _stamp(latest, last)
+            data = to_grid_map(grid, names)
+            basic = tuple(b for b in basic_layers if b in data.layers)
+            msg = grid_map_message(replace(data, basic_layers=basic), store, stamp_ns=stamp_ns)
             writer.write(conn, stamp_ns, store.serialize_cdr(msg, GRID_MAP))
         if path.exists():
             old = Path(tmp) / "replaced"
             os.replace(path, old)
         os.replace(staged, path)
-    log.info("wrote %s (%s on %s)", path, GRID_MAP, topic)
+    log.info("wrote %s (%d update(s) and the whole map, %s on %s)", path, count, GRID_MAP, topic)
     return path
 
 

@@ -3,8 +3,10 @@
 :func:`draw_map_panels` draws one or more :class:`MapPanel` stacked vertically on a
 matplotlib :class:`~matplotlib.figure.Figure` with its own Agg canvas (pyplot is never
 used, so the caller's backend is left alone). Every map is drawn at its true aspect
-(1 m east = 1 m north) in its view; nothing is drawn over the data: the scale bar, the
-vehicle path's key and the colour key sit in a band under the map. Continuous data get a
+(1 m east = 1 m north) in its view; a long map (a traverse's thin strip) is cut into pages
+along the path (:mod:`rough_map.export.pages`), drawn under each other at one scale.
+Nothing is drawn over the data but a thin vehicle path: the scale bar, the path's key and
+the colour key sit in a band under the map (under its last page). Continuous data get a
 horizontal colour bar, class data a legend of colour patches in as many columns as fit the
 width, so that long class names never overlap. Unknown cells (NaN) are transparent over a
 light grey background.
@@ -20,12 +22,22 @@ import math
 import re
 import textwrap
 from collections.abc import Sequence
-from dataclasses import dataclass
-from typing import Any, cast
+from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
 from rough_map.errors import InputError
+from rough_map.export.keys import (
+    FONT,
+    LEGEND_KW,
+    colour_bar,
+    colour_scale,
+    drawn_texts_of_axis,
+    legend_fit,
+    legend_handles,
+)
+from rough_map.export.pages import page_views
 
 __all__ = [
     "MapPanel",
@@ -38,27 +50,16 @@ __all__ = [
 ]
 
 _BACKGROUND = (0.93, 0.93, 0.93)
-_FONT = 9.0  # pt: ticks, keys
-_TITLE_FONT = 10.0  # pt
+_TITLEFONT = 10.0  # pt
 _LEFT = 0.85  # in: y tick labels and y label
 _RIGHT = 0.3  # in
 _MIN_MAP_H = 0.9  # in: thinner maps get a taller view (some blank above and below)
 _TICKS_H = 0.5  # in: x tick labels and x label under a map
 _SCALE_H = 0.36  # in: the row of the scale bar and the path key
 _BAR_H = 0.14  # in: a horizontal colour bar
+_ISO_H = 0.16  # in: the ISO 8608 class letters above a colour bar of R
 _GAP = 0.3  # in: between panels
 _SUPERSCRIPTS = str.maketrans("0123456789-", "⁰¹²³⁴⁵⁶⁷⁸⁹⁻")
-
-_LEGEND_KW: dict[str, Any] = {
-    "frameon": False,
-    "fontsize": _FONT,
-    "borderaxespad": 0.0,
-    "borderpad": 0.0,
-    "handlelength": 1.4,
-    "handleheight": 1.0,
-    "columnspacing": 1.4,
-    "labelspacing": 0.45,
-}
 
 
 def scale_bar_length(span: float) -> float:
@@ -141,6 +142,15 @@ class MapPanel:
         Area to show, as ``extent``; default where ``data`` is finite (:func:`data_view`).
     track : ndarray, shape (n, 2), optional
         Vehicle path (x, y), m.
+    known : ndarray of bool, optional
+        Cells that decide the view and the pages (default where ``data`` is finite).
+    key : bool
+        Draw the key band (scale bar, path key, colour key) under the map; the pages of a
+        map but the last have none.
+    scale : float, optional
+        Drawing scale, in per m (default: the largest that fits).
+    iso_classes : bool
+        Mark the ISO 8608 classes (A–H boundaries of R, m³/rad) on the colour bar.
     """
 
     data: np.ndarray
@@ -153,118 +163,60 @@ class MapPanel:
     colours: Sequence[Sequence[float]] = ()
     view: tuple[float, float, float, float] | None = None
     track: np.ndarray | None = None
+    known: np.ndarray | None = None
+    key: bool = True
+    scale: float | None = None
+    iso_classes: bool = False
+
+
+def _largest_scale(view: Sequence[float], avail_w: float, max_h: float) -> float:
+    """The largest scale (in per m) that fits ``view`` in ``avail_w`` x ``max_h`` in."""
+    x0, x1, y0, y1 = view
+    return min(avail_w / max(x1 - x0, 1e-9), max_h / max(y1 - y0, 1e-9))
 
 
 def _fit_view(
-    view: tuple[float, float, float, float], avail_w: float, max_h: float
+    view: tuple[float, float, float, float],
+    avail_w: float,
+    max_h: float,
+    scale: float | None = None,
 ) -> tuple[tuple[float, float, float, float], float, float]:
-    """The view and the map's size (in) at 1:1 aspect, at most ``avail_w`` x ``max_h``."""
+    """The view and the map's size (in) at 1:1 aspect, at most ``avail_w`` x ``max_h`` (at
+    ``scale`` in per m when given); a thin view is widened to the least map height."""
     x0, x1, y0, y1 = view
     sx, sy = max(x1 - x0, 1e-9), max(y1 - y0, 1e-9)
-    w = avail_w
-    h = w * sy / sx
-    if h > max_h:
-        h, w = max_h, max_h * sx / sy
+    scale = scale or _largest_scale(view, avail_w, max_h)
+    w, h = sx * scale, sy * scale
     if h < _MIN_MAP_H:
-        extra = (_MIN_MAP_H * sx / w - sy) / 2
+        extra = (_MIN_MAP_H / scale - sy) / 2
         y0, y1, h = y0 - extra, y1 + extra, _MIN_MAP_H
     return (x0, x1, y0, y1), w, h
 
 
-def _legend_handles(panel: MapPanel) -> list[Any]:
-    from matplotlib.patches import Patch
-
-    colours: list[Any] = [tuple(c) for c in panel.colours]
-    return [
-        Patch(facecolor=c, edgecolor="0.35", linewidth=0.5, label=name)
-        for name, c in zip(panel.categories, colours, strict=True)
-    ]
-
-
-def _legend_fit(panel: MapPanel, avail_w: float, dpi: float) -> tuple[int, float]:
-    """Columns of the class legend that fit ``avail_w`` in, and its height (in)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    k = len(panel.categories)
-    longest = max(len(c) for c in panel.categories)
-    ncol = max(1, min(k, int(avail_w / (0.45 + 0.075 * longest))))
-    while True:
-        scratch = Figure(figsize=(avail_w + 1, 8), dpi=dpi)
-        canvas = FigureCanvasAgg(scratch)
-        leg = scratch.legend(handles=_legend_handles(panel), ncol=ncol, **_LEGEND_KW)
-        box = leg.get_window_extent(canvas.get_renderer())
-        width, height = box.width / dpi, box.height / dpi
-        if width <= avail_w or ncol == 1:
-            return ncol, height
-        ncol -= 1
-
-
-def _log_ticks(lo: float, hi: float) -> list[float]:
-    decades = [10.0**k for k in range(math.ceil(math.log10(lo)), math.floor(math.log10(hi)) + 1)]
-    if len(decades) >= 2:
-        return decades
-    return sorted({float(f"{v:.2g}") for v in np.geomspace(lo, hi, 4)})
-
-
-def _colour_scale(panel: MapPanel) -> tuple[Any, Any]:
-    from matplotlib import colormaps
-    from matplotlib.colors import BoundaryNorm, Colormap, ListedColormap, Normalize
-
-    cmap: Colormap
-    if panel.categories:
-        k = len(panel.categories)
-        cmap = ListedColormap([tuple(c) for c in panel.colours])
-        norm: Any = BoundaryNorm(np.arange(-0.5, k + 0.5), k)
-    else:
-        cmap = colormaps[panel.cmap] if isinstance(panel.cmap, str) else panel.cmap
-        norm = panel.norm
-        if norm is None:
-            finite = panel.data[np.isfinite(panel.data)]
-            lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
-            norm = Normalize(lo, hi if hi > lo else lo + 1)
-    return cmap.with_extremes(bad=(1, 1, 1, 0)), norm
-
-
-def _colour_bar(fig: Any, cax: Any, image: Any, panel: MapPanel, bar_w: float) -> None:
-    from matplotlib.colors import LogNorm
-    from matplotlib.ticker import FixedLocator, LogFormatterSciNotation, MaxNLocator
-
-    bar = fig.colorbar(image, cax=cax, orientation="horizontal")
-    norm = image.norm
-    if isinstance(norm, LogNorm):
-        ticks = _log_ticks(cast(float, norm.vmin), cast(float, norm.vmax))
-        bar.set_ticks(ticks)
-        if all(math.log10(t).is_integer() for t in ticks):
-            bar.ax.xaxis.set_major_formatter(LogFormatterSciNotation())
-        else:
-            bar.set_ticklabels([f"{t:.2g}" for t in ticks])
-        bar.ax.xaxis.set_minor_locator(FixedLocator([]))
-    elif norm.vmin == 0.0 and norm.vmax == 1.0:
-        bar.set_ticks([0.0, 0.25, 0.5, 0.75, 1.0])
-    else:
-        finite = panel.data[np.isfinite(panel.data)]
-        whole = bool(finite.size) and bool(np.all(finite == np.round(finite)))
-        nbins = max(2, int(bar_w / 0.9))
-        bar.ax.xaxis.set_major_locator(MaxNLocator(nbins=nbins, integer=whole))
-    bar.ax.tick_params(labelsize=_FONT)
-    bar.set_label(panel.label, fontsize=_FONT)
-    # the last guard: drop every other tick label while any two of them touch
-    renderer = fig.canvas.get_renderer()
-    for _ in range(4):
-        labels = drawn_texts_of_axis(bar.ax.xaxis)
-        boxes = [t.get_window_extent(renderer) for t in labels]
-        if not any(a.overlaps(b) for i, a in enumerate(boxes) for b in boxes[i + 1 :]):
-            break
-        locs = bar.ax.xaxis.get_majorticklocs()
-        bar.set_ticks(list(locs[::2]))
-
-
-def drawn_texts_of_axis(axis: Any) -> list[Any]:
-    """The tick labels an axis draws (inside its view, visible, not empty)."""
-    out = []
-    for tick in axis._update_ticks():
-        out += [t for t in (tick.label1, tick.label2) if t.get_visible() and t.get_text().strip()]
+def _paged(
+    panels: Sequence[MapPanel], avail_w: float, max_h: float, page_length: float | None,
+    max_pages: int,
+) -> list[MapPanel]:  # fmt: skip
+    """The panels with each long map cut into pages along the path (:func:`page_views`),
+    all pages of a map at one scale, the key band under its last page only."""
+    out: list[MapPanel] = []
+    for p in panels:
+        known = np.isfinite(np.asarray(p.data, dtype=float)) if p.known is None else p.known
+        view = p.view or data_view(known, p.extent)
+        if page_length is None:
+            out.append(replace(p, view=view))
+            continue
+        pages = page_views(
+            known, p.extent, view, p.track, page_length=page_length, max_pages=max_pages
+        )
+        if len(pages) == 1:
+            out.append(replace(p, view=view))
+            continue
+        scale = min(_largest_scale(pg.view, avail_w, max_h) for pg in pages)
+        n = len(pages)
+        for k, pg in enumerate(pages):
+            title = f"{p.title} ({pg.label(k, n)})" if k == 0 else pg.label(k, n)
+            out.append(replace(p, view=pg.view, title=title, key=k == n - 1, scale=scale))
     return out
 
 
@@ -306,19 +258,25 @@ class _Plan:
     @property
     def height(self) -> float:
         """Height of the panel with its title and key band, in."""
-        return self.title_h + self.map_h + _TICKS_H + _SCALE_H + self.key_h
+        band = _SCALE_H + self.key_h if self.panel.key else 0.0
+        return self.title_h + self.map_h + _TICKS_H + band
+
+    @property
+    def gap(self) -> float:
+        """Space under the panel, in: less between the pages of one map."""
+        return _GAP if self.panel.key else 0.1
 
 
 def _plan(p: MapPanel, avail_w: float, max_h: float, chars: int, dpi: float) -> _Plan:
     data = np.asarray(p.data, dtype=float)
     view = p.view or data_view(np.isfinite(data), p.extent)
-    view, map_w, map_h = _fit_view(view, avail_w, max_h)
+    view, map_w, map_h = _fit_view(view, avail_w, max_h, p.scale)
     title = "\n".join(textwrap.wrap(p.title, chars)) if p.title else ""
     title_h = 0.12 + 0.2 * (title.count("\n") + 1) if title else 0.15
     if p.categories:
-        ncol, key_h = _legend_fit(p, avail_w, dpi)
+        ncol, key_h = legend_fit(p.categories, p.colours, avail_w, dpi)
     else:
-        ncol, key_h = 0, _BAR_H + 0.5
+        ncol, key_h = 0, _BAR_H + 0.5 + (_ISO_H if p.iso_classes else 0.0)
     return _Plan(p, data, view, map_w, map_h, title, ncol, title_h, key_h)
 
 
@@ -331,7 +289,7 @@ def _draw_map(fig: Any, pl: _Plan, map_top: float, track_colour: str) -> Any:
     rect = (_LEFT / width, (map_top - pl.map_h) / total, pl.map_w / width, pl.map_h / total)
     ax = fig.add_axes(rect)
     ax.set_facecolor(_BACKGROUND)
-    cmap, norm = _colour_scale(p)
+    cmap, norm = colour_scale(p.data, p.cmap, p.norm, p.categories, p.colours)
     # NaN cells are masked (transparent) by imshow itself, which copies the data anyway.
     # Sampling the nearest cell of each pixel and then colouring it ("data") gives the
     # picture that colouring every cell and then sampling ("rgba", matplotlib's choice for
@@ -348,19 +306,29 @@ def _draw_map(fig: Any, pl: _Plan, map_top: float, track_colour: str) -> Any:
     )
     if p.track is not None and len(p.track):
         tr = np.asarray(p.track, dtype=float)
-        ax.plot(tr[:, 0], tr[:, 1], color=track_colour, lw=1.2)
+        from matplotlib import patheffects
+
+        # a thin line with a white halo: it shows on every class colour and hides little
+        halo = [
+            patheffects.Stroke(linewidth=2.2, foreground="white", alpha=0.7),
+            patheffects.Normal(),
+        ]
+        ax.plot(tr[:, 0], tr[:, 1], color=track_colour, lw=0.9, path_effects=halo)
     ax.set_xlim(view[0], view[1])
     ax.set_ylim(view[2], view[3])
     ax.set_aspect("equal", adjustable="box")
-    ax.tick_params(labelsize=_FONT)
+    ax.tick_params(labelsize=FONT)
     # large (UTM) coordinates: ticks from a round origin, which the label names
     ox, oy = _axis_origin(view[0], view[1]), _axis_origin(view[2], view[3])
     ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _, o=ox: f"{v - o:g}"))
     ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _, o=oy: f"{v - o:g}"))
-    ax.set_xlabel(f"x (east) − {ox:.0f} [m]" if ox else "x (east) [m]", fontsize=_FONT)
-    ax.set_ylabel(f"y − {oy:.0f} [m]" if oy else "y [m]", fontsize=_FONT)
+    ax.set_xlabel(f"x (east) − {ox:.0f} [m]" if ox else "x (east) [m]", fontsize=FONT)
+    ax.set_ylabel(f"y − {oy:.0f} [m]" if oy else "y [m]", fontsize=FONT)
     if pl.title:
-        ax.set_title(pl.title, fontsize=_TITLE_FONT)
+        ax.set_title(pl.title, fontsize=_TITLEFONT)
+    if not np.isfinite(pl.data).any():
+        ax.text(0.5, 0.5, "no data", transform=ax.transAxes, ha="center", va="center",
+                fontsize=_TITLEFONT, color="0.3", gid="no-data")  # fmt: skip
     return image
 
 
@@ -380,12 +348,12 @@ def _draw_scale_and_path(fig: Any, pl: _Plan, y: float, track_colour: str) -> No
         artist.set_transform(inches)
         artist.set_gid("scale-bar")
         fig.add_artist(artist)
-    text_kw: dict[str, Any] = {"transform": inches, "va": "center", "fontsize": _FONT}
+    text_kw: dict[str, Any] = {"transform": inches, "va": "center", "fontsize": FONT}
     fig.text(_LEFT + bar_in + 0.1, y, f"{length:g} m", gid="scale-bar", **text_kw)
     track = pl.panel.track
     if track is not None and len(track):
         x_path = _LEFT + bar_in + 1.0
-        line = Line2D([x_path, x_path + 0.4], [y] * 2, lw=1.2, color=track_colour)
+        line = Line2D([x_path, x_path + 0.4], [y] * 2, lw=0.9, color=track_colour)
         line.set_transform(inches)
         line.set_gid("path-key")
         fig.add_artist(line)
@@ -395,19 +363,25 @@ def _draw_scale_and_path(fig: Any, pl: _Plan, y: float, track_colour: str) -> No
 def _draw_key(fig: Any, pl: _Plan, image: Any, key_top: float, avail_w: float) -> None:
     """The class legend or the colour bar, its top at ``key_top`` in."""
     width, total = fig.get_size_inches()
+    if not np.isfinite(pl.data).any():
+        fig.text(_LEFT, key_top - 0.1, "no data: nothing was mapped in this layer",
+                 transform=fig.dpi_scale_trans, va="top", fontsize=FONT, gid="no-data")  # fmt: skip
+        return
     if pl.panel.categories:
         fig.legend(
-            handles=_legend_handles(pl.panel),
+            handles=legend_handles(pl.panel.categories, pl.panel.colours),
             loc="upper left",
             bbox_to_anchor=(_LEFT, key_top),
             bbox_transform=fig.dpi_scale_trans,
             ncol=pl.ncol,
-            **_LEGEND_KW,
+            **LEGEND_KW,
         )
     else:
         bar_w = min(avail_w, 4.5)
+        key_top -= _ISO_H if pl.panel.iso_classes else 0.0
         rect = (_LEFT / width, (key_top - _BAR_H) / total, bar_w / width, _BAR_H / total)
-        _colour_bar(fig, fig.add_axes(rect), image, pl.panel, bar_w)
+        p = pl.panel
+        colour_bar(fig, fig.add_axes(rect), image, pl.data, p.label, bar_w, p.iso_classes)
 
 
 def draw_map_panels(
@@ -416,7 +390,9 @@ def draw_map_panels(
     width: float = 8.0,
     dpi: float = 120,
     max_map_height: float = 5.4,
-    track_colour: str = "tab:blue",
+    track_colour: str = "black",
+    page_length: float | None = 10.0,
+    max_pages: int = 8,
 ) -> Any:
     """A figure of maps stacked vertically, each with its key under it.
 
@@ -436,6 +412,11 @@ def draw_map_panels(
         Largest height of one map, in.
     track_colour : str
         Colour of the vehicle path.
+    page_length : float or None
+        A long map is drawn as pages of this much path, m, stacked under each other
+        (:func:`rough_map.export.pages.page_views`); None: one view, however long.
+    max_pages : int
+        Most pages per map (longer maps get longer pages).
 
     Returns
     -------
@@ -448,18 +429,20 @@ def draw_map_panels(
     if not panels:
         raise InputError("no map to draw")
     avail_w = width - _LEFT - _RIGHT
-    chars = max(20, int((width - 0.3) * 72 / (_TITLE_FONT * 0.56)))
+    chars = max(20, int((width - 0.3) * 72 / (_TITLEFONT * 0.56)))
+    panels = _paged(panels, avail_w, max_map_height, page_length, max_pages)
     plans = [_plan(p, avail_w, max_map_height, chars, dpi) for p in panels]
-    total = 0.1 + sum(pl.height for pl in plans) + _GAP * (len(plans) - 1) + 0.15
+    total = 0.1 + sum(pl.height + pl.gap for pl in plans) - plans[-1].gap + 0.15
     fig = Figure(figsize=(width, total), dpi=dpi)
     FigureCanvasAgg(fig)
     top = total - 0.1  # running top edge, in from the bottom
     for pl in plans:
         map_top = top - pl.title_h
         image = _draw_map(fig, pl, map_top, track_colour)
-        # the key band under the map: scale bar, vehicle path, colour bar or class legend
-        band_top = map_top - pl.map_h - _TICKS_H
-        _draw_scale_and_path(fig, pl, band_top - _SCALE_H / 2, track_colour)
-        _draw_key(fig, pl, image, band_top - _SCALE_H, avail_w)
-        top -= pl.height + _GAP
+        if pl.panel.key:
+            # the key band under the map: scale bar, vehicle path, colour bar or legend
+            band_top = map_top - pl.map_h - _TICKS_H
+            _draw_scale_and_path(fig, pl, band_top - _SCALE_H / 2, track_colour)
+            _draw_key(fig, pl, image, band_top - _SCALE_H, avail_w)
+        top -= pl.height + pl.gap
     return fig

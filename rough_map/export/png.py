@@ -49,6 +49,7 @@ __all__ = [
     "draw_map_panels",
     "drawn_texts",
     "is_probability_layer",
+    "is_share_layer",
     "layer_figure",
     "layer_views",
     "scale_bar_length",
@@ -102,8 +103,23 @@ def _display_values(grid: GridMap, layer: str) -> np.ndarray:
     return data
 
 
+def _group_masks(grid: GridMap) -> dict[str, np.ndarray]:
+    """The cells where any layer of each group (``"near"``, ``"far"``) is known."""
+    masks: dict[str, np.ndarray] = {}
+    for name in grid.layers:
+        info = grid.info(name)
+        if info.kind == "internal" or not math.isnan(info.fill):
+            continue
+        known = np.isfinite(grid[name])
+        g = _group(name)
+        masks[g] = masks[g] | known if g in masks else known
+    return masks
+
+
 def layer_views(
-    grid: GridMap, layers: Sequence[str] | None = None
+    grid: GridMap,
+    layers: Sequence[str] | None = None,
+    masks: dict[str, np.ndarray] | None = None,
 ) -> dict[str, tuple[float, float, float, float]]:
     """The area to draw of each layer: where its group (near or far field) holds data.
 
@@ -113,17 +129,58 @@ def layer_views(
     if layers is None:
         layers = [n for n in grid.layers if grid.info(n).kind != "internal"]
     x0, y0, x1, y1 = grid.geometry.bounds
-    masks: dict[str, np.ndarray] = {}
-    for name in grid.layers:
-        info = grid.info(name)
-        if info.kind == "internal" or not math.isnan(info.fill):
-            continue
-        known = np.isfinite(grid[name])
-        g = _group(name)
-        masks[g] = masks[g] | known if g in masks else known
+    masks = _group_masks(grid) if masks is None else masks
     views = {g: data_view(m, (x0, x1, y0, y1)) for g, m in masks.items()}
     full = (x0, x1, y0, y1)
     return {n: views.get(_group(n), full) for n in layers}
+
+
+def is_share_layer(grid: GridMap, layer: str) -> bool:
+    """Whether ``layer`` holds a share on 0–1: a class probability or a confidence."""
+    return is_probability_layer(grid, layer) or (
+        layer.removeprefix("far_") == "confidence" and grid.info(layer).units == "1"
+    )
+
+
+def _count_norm(finite: np.ndarray, cmap: Any) -> tuple[Any, Any]:
+    """Discrete levels for counts 1..max: one colour per count, or per round bin of counts
+    (1, 2 or 5 x 10^k wide) when there are more than 12."""
+    from matplotlib.colors import BoundaryNorm
+
+    top = int(finite.max()) if finite.size else 1
+    step = 1
+    while math.ceil(top / step) > 12:
+        step = next(m * 10**k for k in range(12) for m in (1, 2, 5) if m * 10**k > step)
+    edges = np.arange(0.5, top + step + 0.5, step)
+    levels = len(edges) - 1
+    return cmap.resampled(max(levels, 2)), BoundaryNorm(edges, max(levels, 2))
+
+
+def _continuous_scale(
+    grid: GridMap, layer: str, data: np.ndarray, st: dict[str, Any]
+) -> tuple[Any, Any, str]:
+    """The colour map, norm and label of a continuous layer (see :func:`write_layer_png`)."""
+    from matplotlib import colormaps
+    from matplotlib.colors import LogNorm, Normalize
+
+    info = grid.info(layer)
+    cmap = colormaps[st["cmap"].get(layer, st["default_cmap"])]
+    finite = data[np.isfinite(data)]
+    units = display_units(info.units)
+    label = f"{layer} [{units}]" if units else layer
+    if is_share_layer(grid, layer):
+        return cmap, Normalize(0.0, 1.0), f"{layer}: {info.description} (0–1)"
+    if layer.removeprefix("far_") in st["count_layers"]:
+        cmap, norm = _count_norm(finite, cmap)
+        return cmap, norm, f"{layer}: {info.description}"
+    if layer in st["log_layers"] and np.any(finite > 0):
+        pos = finite[finite > 0]
+        lo, hi = float(pos.min()), float(pos.max())
+        return cmap, LogNorm(lo, hi) if hi > 1.01 * lo else LogNorm(lo / 2, hi * 2), label
+    if finite.size:
+        lo, hi = float(finite.min()), float(finite.max())
+        return cmap, Normalize(lo, hi if hi > lo else lo + 1), label
+    return cmap, Normalize(0, 1), label
 
 
 def layer_figure(
@@ -133,11 +190,9 @@ def layer_figure(
     style: dict[str, Any] | None = None,
     title: str | None = None,
     view: tuple[float, float, float, float] | None = None,
+    known: np.ndarray | None = None,
 ) -> Any:
     """The figure :func:`write_layer_png` saves (see there); returns a matplotlib Figure."""
-    from matplotlib import colormaps
-    from matplotlib.colors import LogNorm, Normalize
-
     st = {**PNG_STYLE, **(style or {})}
     if layer not in grid.layers:
         raise InputError(f"the map has no layer {layer!r}; it has {list(grid.layers)}")
@@ -145,40 +200,28 @@ def layer_figure(
     data = _display_values(grid, layer)
     x0, y0, x1, y1 = grid.geometry.bounds
     name = grid.attrs.get("name") or "map"
-    units = display_units(info.units)
     panel = MapPanel(
         data=data,
         extent=(x0, x1, y0, y1),
         title=title or f"{name}: {layer} — {info.description}",
         view=view or layer_views(grid, [layer])[layer],
         track=grid.attrs.get("track"),
+        known=known,
     )
     if info.categories:
         panel.categories = tuple(info.categories)
         panel.colours = _colours(grid, layer)
     else:
-        panel.cmap = colormaps[st["cmap"].get(layer, st["default_cmap"])]
-        finite = data[np.isfinite(data)]
-        if is_probability_layer(grid, layer):
-            panel.norm = Normalize(0.0, 1.0)
-            panel.label = f"{layer}: {info.description} (0–1)"
-        elif layer in st["log_layers"] and np.any(finite > 0):
-            pos = finite[finite > 0]
-            lo, hi = float(pos.min()), float(pos.max())
-            panel.norm = LogNorm(lo, hi) if hi > 1.01 * lo else LogNorm(lo / 2, hi * 2)
-        elif finite.size:
-            lo, hi = float(finite.min()), float(finite.max())
-            panel.norm = Normalize(lo, hi if hi > lo else lo + 1)
-        else:
-            panel.norm = Normalize(0, 1)
-        if not panel.label:
-            panel.label = f"{layer} [{units}]" if units else layer
+        panel.cmap, panel.norm, panel.label = _continuous_scale(grid, layer, data, st)
+        panel.iso_classes = layer == "R"
     return draw_map_panels(
         [panel],
         width=float(st["figsize"][0]),
         dpi=float(st["dpi"]),
         max_map_height=1.2 * float(st["figsize"][1]),
         track_colour=st["track_colour"],
+        page_length=st["page_length"],
+        max_pages=int(st["max_pages"]),
     )
 
 
@@ -190,6 +233,7 @@ def write_layer_png(
     style: dict[str, Any] | None = None,
     title: str | None = None,
     view: tuple[float, float, float, float] | None = None,
+    known: np.ndarray | None = None,
 ) -> Path:
     """Draw one layer of a map to a PNG.
 
@@ -208,13 +252,15 @@ def write_layer_png(
     view : (float, float, float, float), optional
         ``(x_min, x_max, y_min, y_max)`` in m to draw; default the box of the cells where
         the layer's group (near or far field) has data (:func:`layer_views`).
+    known : ndarray of bool, optional
+        The cells that place the pages of a long map (default where the layer is known).
 
     Returns
     -------
     Path
         ``path``.
     """
-    fig = layer_figure(grid, layer, style=style, title=title, view=view)
+    fig = layer_figure(grid, layer, style=style, title=title, view=view, known=known)
     path = Path(path)
     try:
         with atomic_output(path) as tmp:
@@ -266,11 +312,17 @@ def write_pngs(
     if layers is None:
         layers = [n for n in grid.layers if grid.info(n).kind != "internal"]
     out = Path(out_dir)
-    views = layer_views(grid, layers)
+    masks = _group_masks(grid)
+    views = layer_views(grid, layers, masks)
     written = {}
     for layer in tqdm(layers, desc="PNG", unit="layer", disable=not progress):
         written[layer] = write_layer_png(
-            grid, layer, out / f"{name}_{layer}.png", style=style, view=views[layer]
+            grid,
+            layer,
+            out / f"{name}_{layer}.png",
+            style=style,
+            view=views[layer],
+            known=masks.get(_group(layer)),
         )
     gc.collect()  # the figures' last objects (each PNG collects the young ones)
     return written

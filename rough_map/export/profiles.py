@@ -101,13 +101,17 @@ LEADING_BANDS: tuple[str, ...] = (
 
 #: Colours (RGB 0-255) of the terrain classes of :mod:`rough_map.terrain`, in every
 #: export (GeoTIFF colour tables, PNGs, report figures); other classes take
-#: :data:`OTHER_CLASS_COLOURS` by their index (:func:`class_colour`).
+#: :data:`OTHER_CLASS_COLOURS` by their index (:func:`class_colour`). Safe for colour-blind
+#: readers: the CIELAB lightness L* of any two differs by at least 13 (dirt_road 89,
+#: concrete 76, compact_soil 54, gravel 37, ploughed_soil 15), so they stay apart in grey
+#: too, and under simulated protanopia, deuteranopia and tritanopia (Machado et al. 2009)
+#: any two are at least 22 CIELAB units apart (tests/test_export.py checks both).
 CLASS_COLOURS: dict[str, tuple[int, int, int]] = {
-    "concrete": (160, 160, 160),
-    "dirt_road": (196, 160, 100),
-    "gravel": (90, 110, 140),
-    "compact_soil": (140, 100, 60),
-    "ploughed_soil": (80, 50, 30),
+    "concrete": (187, 187, 187),
+    "dirt_road": (240, 228, 66),
+    "gravel": (0, 90, 150),
+    "compact_soil": (213, 94, 0),
+    "ploughed_soil": (60, 30, 10),
 }
 
 #: Colours (RGB 0-255) of classes not in :data:`CLASS_COLOURS`: matplotlib's ``tab10``.
@@ -130,11 +134,15 @@ def class_colour(name: str, index: int = 0) -> tuple[int, int, int]:
     return CLASS_COLOURS.get(name, OTHER_CLASS_COLOURS[index % len(OTHER_CLASS_COLOURS)])
 
 
-#: Colours of the roughness levels, smoothest first (paper Fig. 19: green to red).
-LEVEL_COLOURS: tuple[tuple[int, int, int], ...] = ((44, 160, 44), (255, 191, 0), (214, 39, 40))
+#: Colours of the roughness levels, smoothest first: pale yellow, orange, dark red (the
+#: paper's Fig. 19 runs green to red, which colour-blind readers cannot tell apart; these
+#: differ by at least 28 in lightness L*).
+LEVEL_COLOURS: tuple[tuple[int, int, int], ...] = ((255, 230, 140), (235, 125, 35), (140, 20, 40))
 
-#: PNG rendering: figure size (in), dpi, colour maps per layer (default ``viridis``) and
-#: the layers drawn with a logarithmic colour scale.
+#: PNG rendering: figure size (in), dpi, colour maps per layer (default ``viridis``), the
+#: layers drawn with a logarithmic colour scale, the count layers (drawn as discrete
+#: levels; also with the ``far_`` prefix), and the pages a long map is cut into along the
+#: path: ``page_length`` m of path each (None: one view), at most ``max_pages``.
 PNG_STYLE: dict[str, Any] = {
     "figsize": (8.0, 4.5),
     "dpi": 120,
@@ -143,12 +151,13 @@ PNG_STYLE: dict[str, Any] = {
         "sigma_R": "magma",
         "w": "cividis",
         "sigma_w": "cividis",
-        "count": "Greys",
-        "far_count": "Greys",
         "last_seen": "plasma",
         "far_last_seen": "plasma",
     },
     "default_cmap": "viridis",
     "log_layers": ("R", "sigma_R"),
-    "track_colour": "tab:blue",
+    "count_layers": ("count",),
+    "track_colour": "black",
+    "page_length": 10.0,
+    "max_pages": 8,
 }

@@ -1,4 +1,5 @@
-"""The report's ``index.html``: summary, extra tables, evaluation, figures and files.
+"""The report's ``index.html``: the map and figures first, then the summary, extra tables,
+evaluation and files.
 
 The page is for a person on a laptop screen: a narrow column (max 1100 px), images that
 shrink with the window, numbers in HTML tables (:mod:`rough_map.export.tables`; wide ones
@@ -47,9 +48,10 @@ th{background:#f3f3f3}.num{text-align:right}
 td.text{white-space:normal;min-width:24ch}
 """
 
-#: Order of the figures on the page (by key of the report's paths); others follow.
-FIGURE_ORDER = ("path", "psd", "profiles", "iso", "classes", "map", "map_class",
-                "map_class_far", "confusion")  # fmt: skip
+#: Order of the figures on the page (by key of the report's paths), the maps first; others
+#: follow.
+FIGURE_ORDER = ("map_class", "map", "map_class_far", "path", "psd", "profiles", "iso",
+                "classes", "confusion")  # fmt: skip
 
 #: Keys of ``far_report`` shown in the summary rows (the others get a table each).
 _FAR_SUMMARY = ("near_area_m2", "near_far_area_m2", "area_ratio", "far_accuracy_by_distance")
@@ -105,6 +107,9 @@ def write_index(
         The page.
     """
     page = _Page()
+    # the map and the figures lead; the tables follow
+    page.section("figures", "Map and figures")
+    page.body += _figures(paths, captions)
     page.section("summary", "Summary")
     page.body += _summary(result)
     for k, t in enumerate(tables):
@@ -116,8 +121,6 @@ def write_index(
     if evaluation is not None:
         page.section("evaluation", "Evaluation against the labels")
         page.body.append(_evaluation_html(evaluation))
-    page.section("figures", "Figures")
-    page.body += _figures(paths, captions)
     files = _files_html(out, result.map)
     if files:
         page.section("files", "Files")

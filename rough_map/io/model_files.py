@@ -18,7 +18,7 @@ from typing import Any
 from rough_map.errors import ModelError
 from rough_map.io._model_archive import MAX_DEPTH, brief, json_depth
 from rough_map.io._model_commit import resolve_pending
-from rough_map.resources import model_base, shipped_models
+from rough_map.resources import model_base, shipped_models, user_models_dir
 
 __all__ = [
     "CARD_FORMAT",
@@ -67,12 +67,14 @@ def model_paths(name: str | Path) -> tuple[Path, Path]:
 
 
 def resolve_model(name: str | Path) -> tuple[Path, Path]:
-    """Model and card files of a path, or of a shipped model's bare name (``default``).
+    """Model and card files of a path, of a shipped model's bare name (``default``), or of
+    a model in the user models folder (:func:`rough_map.resources.user_models_dir`) by its
+    bare name.
 
     Raises
     ------
     ModelError
-        No such model file, and no shipped model of that name.
+        No such model file, no shipped model and no user model of that name.
     """
     model_file, card_file = model_paths(name)
     if model_file.is_file():
@@ -80,8 +82,15 @@ def resolve_model(name: str | Path) -> tuple[Path, Path]:
     bare = Path(name).name == str(name) and not str(name).endswith(MODEL_SUFFIX)
     if bare and str(name) in shipped_models():
         return model_paths(model_base(str(name)))
+    if bare:
+        mine = model_paths(user_models_dir() / str(name))
+        if mine[0].is_file():
+            return mine
     shipped = ", ".join(shipped_models()) or "none"
-    raise ModelError(f"{model_file}: no such model file (models shipped with rough_map: {shipped})")
+    raise ModelError(
+        f"{model_file}: no such model file (shipped with rough_map: {shipped}; "
+        f"yours, by name: in {user_models_dir()})"
+    )
 
 
 def sha256_file(path: str | Path) -> str:

@@ -55,7 +55,7 @@ def write_example_bag(
     (``sensor_msgs/Imu``, roll and pitch of the frame's IMU, yaw of its pose; frames with an
     IMU only) and ``/tf_static`` (the lidar mount :data:`EXAMPLE_LIDAR_MOUNT`), one message
     of each per frame at ``EXAMPLE_T0_NS`` plus the frame time. :func:`import_bag` with
-    ``points_topic="/points"``, ``odom_topic="/odom"``, ``imu_topic="/imu"`` gives the
+    ``points_topic="/points"``, ``pose_topic="/odom"``, ``imu_topic="/imu"`` gives the
     traverse back (clouds to float32 precision, no labels or images).
 
     Parameters

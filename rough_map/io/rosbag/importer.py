@@ -11,18 +11,18 @@ import numpy as np
 from pydantic import ValidationError
 
 from rough_map._files import PathLike
-from rough_map.config import SCHEMA_VERSION, FrameSpec, ImuAttitude, Pose, TraverseSpec
+from rough_map.config import SCHEMA_VERSION, Crs, FrameSpec, ImuAttitude, Pose, TraverseSpec
 from rough_map.errors import FileFormatError, InputError
 from rough_map.io.pointcloud import write_cloud
 from rough_map.io.rosbag.messages import (
     IMU,
-    ODOMETRY,
     POINTCLOUD2,
     TF_STATIC_TOPIC,
     frame_name,
     pointcloud2_to_xyz,
     stamp_ns,
 )
+from rough_map.io.rosbag.poses import metric_crs, vehicle_trajectory
 from rough_map.io.rosbag.reader import deserialize, open_bag, raw_messages, topic_connections
 from rough_map.io.rosbag.tf import Transform, static_transform, static_transforms
 from rough_map.io.rosbag.trajectory import Trajectory, read_trajectory
@@ -49,19 +49,24 @@ def import_bag(
     bag: PathLike,
     out_dir: PathLike,
     points_topic: str,
-    odom_topic: str,
+    pose_topic: str,
     imu_topic: str | None = None,
     every: int = 1,
     progress: bool = False,
+    *,
+    crs: Crs | str | dict[str, Any] | None = None,
+    vehicle_frame: str = "base_link",
 ) -> Traverse:
     """Turn a bag into a traverse folder: one frame per point cloud.
 
-    For each ``PointCloud2`` message (every ``every``-th one), the odometry pose is
+    For each ``PointCloud2`` message (every ``every``-th one), the vehicle pose is
     interpolated at the cloud's stamp (linear in position, slerp in orientation); clouds
-    outside the span of the odometry are dropped, with a warning giving their number. The
-    points are written to ``clouds/<message index>.npy`` in the vehicle frame (the odometry
-    ``child_frame_id``): if ``/tf_static`` links the cloud's ``frame_id`` to it, the points
-    are transformed, otherwise the cloud is taken to be in the vehicle frame already. With
+    outside the span of the poses are dropped, with a warning giving their number. The
+    poses come from ``pose_topic``: odometry, a (covariance) pose, the /tf tree or GNSS
+    fixes (:func:`rough_map.io.rosbag.poses.vehicle_trajectory`). The points are written to
+    ``clouds/<message index>.npy`` in the vehicle frame (the odometry ``child_frame_id``,
+    else ``vehicle_frame``): if ``/tf_static`` links the cloud's ``frame_id`` to it, the
+    points are transformed, otherwise the cloud is taken to be in the vehicle frame already. With
     ``imu_topic``, the IMU roll and pitch at the stamp (slerp) are stored too. Frame times
     count from the first cloud; its absolute stamp is kept in ``metadata.source.t0_ns``.
 
@@ -76,14 +81,24 @@ def import_bag(
         Traverse folder to create or fill; must not hold a traverse file yet.
     points_topic : str
         ``sensor_msgs/PointCloud2`` topic.
-    odom_topic : str
-        ``nav_msgs/Odometry`` topic: vehicle pose in the world (``crs`` is ``"local"``).
+    pose_topic : str
+        The vehicle's poses in the world: a ``nav_msgs/Odometry``,
+        ``geometry_msgs/PoseStamped`` or ``PoseWithCovarianceStamped``, ``tf2_msgs/TFMessage``
+        (``/tf``) or ``sensor_msgs/NavSatFix`` topic.
     imu_topic : str, optional
         ``sensor_msgs/Imu`` topic.
     every : int
         Keep one cloud in ``every`` (>= 1).
     progress : bool
         Show a tqdm progress bar on stderr.
+    crs : Crs, str or dict, optional
+        The CRS of the poses' world frame: ``"EPSG:<code>"`` (projected, metres), or
+        ``{"code": "local", "origin": {"lat": .., "lon": .., "alt": ..}}`` for a local frame
+        with a known geodetic origin (default ``local``; for GNSS fixes, a local frame at
+        the first fix).
+    vehicle_frame : str
+        The vehicle's frame, for poses that do not name it (PoseStamped, NavSatFix) and the
+        frame whose pose /tf gives.
 
     Returns
     -------
@@ -100,13 +115,17 @@ def import_bag(
     """
     if every < 1:
         raise InputError(f"every must be >= 1, got {every}")
+    world = Crs.from_any(crs or "local")
+    metric_crs(world)
     bag, out_dir = Path(bag), Path(out_dir)
     if existing := [n for n in TRAVERSE_FILES if (out_dir / n).exists()]:
         raise InputError(f"{out_dir / existing[0]} exists; import into a new folder")
 
     with open_bag(bag) as reader:
         cloud_connections = topic_connections(reader, bag, points_topic, POINTCLOUD2)
-        odometry = read_trajectory(reader, bag, odom_topic, ODOMETRY)
+        odometry, world_crs = vehicle_trajectory(
+            reader, bag, pose_topic, crs=world, vehicle_frame=vehicle_frame
+        )
         imu = read_trajectory(reader, bag, imu_topic, IMU) if imu_topic else None
         clouds = _CloudImport(bag, out_dir, points_topic, odometry, static_transforms(reader, bag))
         (out_dir / "clouds").mkdir(parents=True, exist_ok=True)
@@ -117,13 +136,14 @@ def import_bag(
         raise FileFormatError(
             bag,
             f"no point cloud imported from {points_topic!r}: {counts.outside} outside the "
-            f"odometry time span, {counts.empty} without a finite point",
+            f"time span of the poses on {pose_topic!r}, {counts.empty} without a finite point",
             field=points_topic,
         )
     try:
         spec = _traverse_spec(
-            bag, clouds.rows, odometry, imu, counts, points_topic, odom_topic, imu_topic, every
+            bag, clouds.rows, odometry, imu, counts, points_topic, pose_topic, imu_topic, every
         )
+        spec = spec.model_copy(update={"crs": world_crs})
     except ValidationError as err:  # e.g. stamps ns apart but 1e18 ns from the first cloud
         first = err.errors()[0]
         raise FileFormatError(
@@ -225,7 +245,7 @@ def _traverse_spec(
     imu: Trajectory | None,
     counts: _ImportCounts,
     points_topic: str,
-    odom_topic: str,
+    pose_topic: str,
     imu_topic: str | None,
     every: int,
 ) -> TraverseSpec:
@@ -260,7 +280,7 @@ def _traverse_spec(
     source = {
         "bag": bag.name,
         "points_topic": points_topic,
-        "odom_topic": odom_topic,
+        "pose_topic": pose_topic,
         "imu_topic": imu_topic,
         "every": every,
         "t0_ns": int(ns[0]),
