@@ -394,6 +394,12 @@ class TraverseSpec(_Model):
     height_field: RelativePath | None = Field(
         None, description="Ground-truth height field (.npz), e.g. from a simulator."
     )
+    cloud_frame: Literal["vehicle", "world"] = Field(
+        "vehicle",
+        description="Frame of the clouds' points: 'vehicle' (x forward, y left, z up, m), or "
+        "'world' (the world frame of the poses, as registered scans are): each cloud is then "
+        "moved into the vehicle frame with its frame's pose.",
+    )
     metadata: dict[str, Any] = Field(
         default_factory=dict, description="Free-form information (source, ground truth, ...)."
     )

@@ -576,8 +576,27 @@ def test_map_and_report_take_what_their_help_offers(small: Path, tmp_path: Path,
     assert run(capsys, "-q", "evaluate", table_file)[0] == 0
 
 
+def test_a_ctrl_c_as_the_workers_start_is_not_lost() -> None:
+    """The workers start with SIGINT ignored; a Ctrl-C to this process meanwhile is kept
+    and taken when the block ends (it was lost, and a report ran on to its end)."""
+    import os
+    import signal
+
+    from rough_map.features.frames import children_ignore_sigint
+
+    reached = []
+    with pytest.raises(KeyboardInterrupt):
+        with children_ignore_sigint():
+            os.kill(os.getpid(), signal.SIGINT)
+            reached.append("inside")
+        reached.append("after")
+    assert reached == ["inside"]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, set())
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("command", ["map", "features"])
+@pytest.mark.parametrize("command", ["map", "features", "report", "batch", "train"])
 def test_ctrl_c_during_a_two_process_run_is_one_line(command: str, tmp_path: Path) -> None:
     """Ctrl-C (SIGINT to the whole process group, as a terminal sends it) while the
     workers are busy: exit 130, one line, no worker traceback, no leaked semaphore."""
@@ -592,7 +611,8 @@ def test_ctrl_c_during_a_two_process_run_is_one_line(command: str, tmp_path: Pat
     trav = tmp_path / "t"
     simulate(trav, "mixed", length=12.0, seed=3, images=False)
     exe = Path(sys.executable).with_name("rough-map")
-    out = ["--out", str(tmp_path / ("m" if command == "map" else "f.csv"))]
+    target = {"features": "f.csv", "train": "model"}.get(command, "m")
+    out = ["--out", str(tmp_path / target), *(["--force"] if command == "train" else [])]
     interrupted = 0
     for delay in (0.4, 0.6, 0.9, 1.5, 2.5):  # start-up, the workers importing, the frames
         proc = subprocess.Popen(
@@ -658,5 +678,12 @@ def test_a_cloud_in_other_units_columns_or_frame_reads_as_in_the_vehicle_frame(
     assert at["R"] == pytest.approx(ref["R"], rel=0.02) and at["w"] == pytest.approx(
         ref["w"], abs=0.01
     )
+    framed = _features_json(capsys, tmp_path / "world.npy", "--frame", "world", "--at",
+                            "512000,4100000,30")  # fmt: skip
+    assert framed["R"] == at["R"]
+    code, _, err = run(capsys, "features", tmp_path / "world.npy", "--frame", "world")
+    assert code == 2 and "--frame world" in err and "give --at X,Y[,YAW]" in err
+    code, _, err = run(capsys, "features", tmp_path / "m.npy", "--frame", "vehicle", "--at", "1,2")
+    assert code == 2 and "--frame vehicle says it is not one" in err
     code, _, err = run(capsys, "features", tmp_path / "m.npy", "--at", "1,2,x")
     assert code == 2 and "expected X,Y or X,Y,YAW" in err

@@ -365,3 +365,32 @@ def test_format_location() -> None:
     assert format_location(("frames", 3, "pose", "yaw")) == "frames[3].pose.yaw"
     assert format_location(()) == "(top level)"
     assert SCHEMA_VERSION == "1.0"
+
+
+def test_world_frame_clouds_read_as_their_vehicle_frame_twins(small_traverse, tmp_path):
+    """cloud_frame: world (registered scans): each cloud is moved into the vehicle frame
+    with its pose, so the features are those of the same clouds stored in the vehicle
+    frame (issue 30)."""
+    import json
+    import shutil
+
+    from rough_map.features import traverse_features
+    from rough_map.io.pointcloud import write_cloud
+    from rough_map.io.traverse import load_traverse
+
+    world = tmp_path / "world"
+    shutil.copytree(small_traverse, world)
+    trav = load_traverse(small_traverse)
+    for i, frame in enumerate(trav.frames):
+        write_cloud(world / frame.cloud, trav.load_cloud(i, frame="world"))
+    spec = json.loads((world / "traverse.json").read_text())
+    spec["cloud_frame"] = "world"
+    (world / "traverse.json").write_text(json.dumps(spec))
+    twin = load_traverse(world)
+    np.testing.assert_allclose(twin.load_cloud(2), trav.load_cloud(2), atol=1e-5)
+    np.testing.assert_allclose(twin.load_cloud(2, frame="world"),
+                               trav.load_cloud(2, frame="world"), atol=1e-5)  # fmt: skip
+    a, b = traverse_features(trav), traverse_features(twin)
+    assert list(a.valid) == list(b.valid) and a.valid.any()
+    np.testing.assert_allclose(b["R"][a.valid], a["R"][a.valid], rtol=1e-3)
+    np.testing.assert_allclose(b["w"][a.valid], a["w"][a.valid], atol=1e-3)

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from rough_map.cli._common import (
     add_allow_outside_arg,
@@ -73,6 +74,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="for a text cloud: the header names or 1-based numbers of its x, y, z columns",
     )
     cloud.add_argument(
+        "--frame",
+        choices=("vehicle", "world"),
+        default=None,
+        help="frame of the cloud's points: vehicle (x forward, y left, z up; the default "
+        "without --at) or world (a world-frame or georeferenced cloud, read at --at; the "
+        "default with it). A traverse names its clouds' frame in traverse.json (cloud_frame)",
+    )
+    cloud.add_argument(
         "--at",
         type=_pose,
         metavar="X,Y[,YAW]",
@@ -130,9 +139,16 @@ def _pose(text: str) -> tuple[float, float, float]:
 def run(args: argparse.Namespace) -> int:
     from rough_map.io.traverse import TRAVERSE_FILES
 
+    if args.frame == "world" and args.at is None:
+        raise InputError(
+            "--frame world: a world-frame cloud is read where a vehicle stands: give --at "
+            "X,Y[,YAW] (m, in the cloud's frame or CRS; degrees)"
+        )
+    if args.frame == "vehicle" and args.at is not None:
+        raise InputError("--at reads a world-frame cloud; --frame vehicle says it is not one")
     if args.source.is_dir() or args.source.name in TRAVERSE_FILES:
         given = [o for o, v in (("--units", args.units != "m"), ("--columns", args.columns),
-                                ("--at", args.at)) if v]  # fmt: skip
+                                ("--at", args.at), ("--frame", args.frame)) if v]  # fmt: skip
         if given:
             raise InputError(
                 f"{' and '.join(given)} read one cloud; a traverse gives its frames' poses"
@@ -150,12 +166,18 @@ def _load(args: argparse.Namespace) -> NDArray[np.float64]:
 
     from rough_map.io.pointcloud import read_cloud
 
-    points = read_cloud(args.source, columns=args.columns)
+    args.cloud_crs = None
+    if args.source.suffix.lower() in (".las", ".laz"):
+        from rough_map.io.las import read_las
+
+        las = read_las(args.source)  # once: its points and its CRS
+        points = las.points
+        args.cloud_crs = _crs_name(las.crs)
+    else:
+        points = read_cloud(args.source, columns=args.columns)
     if args.units != "m":
         if args.source.suffix.lower() in (".las", ".laz"):
-            from rough_map.io.las import read_las
-
-            if read_las(args.source).crs is not None:
+            if args.cloud_crs is not None:
                 raise InputError(
                     f"{args.source.name}: its CRS gives its units; --units is for clouds "
                     "without one"
@@ -168,6 +190,16 @@ def _load(args: argparse.Namespace) -> NDArray[np.float64]:
         z = points[:, 2] - np.median(points[:, 2])  # heights about the cloud's own level
         points = np.column_stack([c * dx + s * dy, -s * dx + c * dy, z])
     return points
+
+
+def _crs_name(crs: Any) -> str | None:
+    """A LAS file's CRS as a person names it: ``EPSG:32104``, or the name in its WKT."""
+    if crs is None:
+        return None
+    if crs.epsg:
+        return f"EPSG:{crs.epsg}"
+    found = re.search(r'^\w+\["([^"]{1,60})"', crs.wkt or "")
+    return found.group(1) if found else "its CRS"
 
 
 def run_cloud(args: argparse.Namespace) -> int:
@@ -183,12 +215,19 @@ def run_cloud(args: argparse.Namespace) -> int:
     points = _load(args)
     t1 = time.perf_counter()
     tilt = args.roll is not None or args.pitch is not None
-    grid, rough = cloud_roughness(
-        points,
-        extraction,
-        roll=math.radians(args.roll or 0.0) if tilt else None,
-        pitch=math.radians(args.pitch or 0.0) if tilt else None,
-    )
+    try:
+        grid, rough = cloud_roughness(
+            points,
+            extraction,
+            roll=math.radians(args.roll or 0.0) if tilt else None,
+            pitch=math.radians(args.pitch or 0.0) if tilt else None,
+        )
+    except InputError as err:
+        if args.cloud_crs is None or " m: a world-frame cloud?" not in str(err):
+            raise
+        # a georeferenced file: say in which CRS its points lie, and that --at takes it
+        text = str(err).replace(" m: a world-frame cloud?", f" m in {args.cloud_crs}:", 1)
+        raise InputError(text) from None
     t2 = time.perf_counter()
     spec = grid.spec  # the step used (--spacing auto may have coarsened it)
     timing_ms = {"load": 1e3 * (t1 - t0), "process": 1e3 * (t2 - t1)}

@@ -410,16 +410,21 @@ def children_ignore_sigint() -> Iterator[None]:
     Ctrl-C reaches every process of the terminal's group. Only this one should act on it:
     it stops with one line and exit status 130 and its pool shuts the workers down. A
     worker that took it too would print its own traceback (one interrupted while importing,
-    25 lines) and leave loky's semaphores behind. Outside the main thread (where no signal
-    handler can be set) the block does nothing."""
+    25 lines) and leave loky's semaphores behind. The signal is also blocked in this process
+    meanwhile: Linux keeps a blocked signal pending even while it is ignored, so a Ctrl-C
+    that comes as the workers start is taken as the block ends, with the handler back
+    (ignored alone, it would be lost and the run would go on to its end). Outside the main
+    thread (where no signal handler can be set) the block does nothing."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         yield
     finally:
         signal.signal(signal.SIGINT, previous)
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
 
 
 def _ready() -> bool:

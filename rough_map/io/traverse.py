@@ -205,8 +205,8 @@ class Traverse:
         index : int
             Frame index (negative counts from the end).
         frame : {"vehicle", "world"}
-            Return the points as stored (vehicle frame) or moved to the world frame with the
-            frame's pose.
+            Return the points in the vehicle frame or in the world frame (moved with the
+            frame's pose from the frame they are stored in, the traverse's ``cloud_frame``).
 
         Returns
         -------
@@ -220,13 +220,15 @@ class Traverse:
         FileFormatError
             The cloud file cannot be read.
         """
-        points = read_cloud(self.cloud_path(index))
-        if frame == "world":
-            transform = self.pose_matrix(index)
-            points = transform_points(points, transform[:3, :3], transform[:3, 3])
-        elif frame != "vehicle":
+        if frame not in ("vehicle", "world"):
             raise ValueError(f"frame must be 'vehicle' or 'world', got {frame!r}")
-        return points
+        points = read_cloud(self.cloud_path(index))
+        if frame == self.spec.cloud_frame:
+            return points
+        transform = self.pose_matrix(index)
+        if frame == "vehicle":  # stored in the world frame
+            transform = np.linalg.inv(transform)
+        return transform_points(points, transform[:3, :3], transform[:3, 3])
 
     def validate_files(self) -> None:
         """Check that every file the traverse names exists.

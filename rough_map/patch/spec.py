@@ -171,18 +171,20 @@ def where_the_cloud_lies(points: np.ndarray, spec: PatchSpec) -> str:
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     if lo[0] <= spec.x0 and hi[0] >= x1 and lo[1] <= spec.y0 and hi[1] >= y1:
         return ""  # the cloud surrounds the patch: too sparse, not elsewhere
+    box = f"{inside} of {len(pts)} points over the patch (x {spec.x0:.3g}..{x1:.3g}, y "
+    box += f"{spec.y0:.3g}..{y1:.3g} m)"
     centre, spread = 0.5 * np.abs(lo + hi)[:2].max(), (hi - lo)[:2].max()
     if centre > 1e3 and centre > 10 * spread:
-        hint = ": a world-frame cloud? give it in the vehicle frame"
-    elif spread > 100 * spec.size:
+        cx, cy = 0.5 * (lo[:2] + hi[:2])
+        return (
+            f"{box}; they lie around x {cx:.1f}, y {cy:.1f} m: a world-frame cloud? read it "
+            "at a pose: --at X,Y[,YAW]"
+        )
+    if spread > 100 * spec.size:
         hint = ": in millimetres? clouds are read in metres"
     else:
         hint = ""
-    return (
-        f"{inside} of {len(pts)} points over the patch (x {spec.x0:.3g} to {x1:.3g}, y "
-        f"{spec.y0:.3g} to {y1:.3g} m); they lie at x {lo[0]:.4g} to "
-        f"{hi[0]:.4g}, y {lo[1]:.4g} to {hi[1]:.4g} m{hint}"
-    )
+    return f"{box}; they lie at x {lo[0]:.4g}..{hi[0]:.4g}, y {lo[1]:.4g}..{hi[1]:.4g} m{hint}"
 
 
 def auto_spacing(
