@@ -23,11 +23,11 @@ import shutil
 import sys
 import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
-from rough_map.errors import FileFormatError
+from rough_map.errors import FileFormatError, InputError
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +36,7 @@ __all__ = [
     "TMP_FILE",
     "PathLike",
     "atomic_output",
+    "atomic_outputs",
     "clean_dead_temp_dirs",
     "clean_stale",
     "fsync_dir",
@@ -43,6 +44,8 @@ __all__ = [
     "gdal_errors",
     "is_temp_name",
     "make_dir",
+    "pending_folder",
+    "resolve_pending",
     "verify_file",
     "write_error",
 ]
@@ -399,3 +402,109 @@ def atomic_output(path: PathLike, *, verify: bool = True) -> Iterator[Path]:
                 tmp.unlink(missing_ok=True)
         except OSError:
             pass
+
+
+# -- a set of files, committed together ------------------------------------------------------
+
+#: Name of the file written last into a pending folder: the commit is complete.
+MARKER = "complete"
+#: A pending-commit folder ``.<first file>.pending`` (:func:`atomic_outputs`).
+PENDING = re.compile(r"^\..+\.pending$")
+
+
+def pending_folder(first: PathLike) -> Path:
+    """The pending folder of a set of files whose first is ``first``: ``.<name>.pending``
+    beside it."""
+    first = Path(first)
+    return first.with_name(f".{first.name}.pending")
+
+
+def resolve_pending(paths: Sequence[PathLike]) -> None:
+    """Finish or discard an interrupted commit of the set ``paths`` (:func:`atomic_outputs`).
+
+    A complete commit (its marker written) is rolled forward, idempotently: each staged file
+    still in the pending folder is renamed onto its final name. An incomplete one is
+    deleted, and the old files stay. Every writer and reader of the set calls this first.
+
+    Raises
+    ------
+    FileFormatError
+        The pending folder cannot be resolved (permissions, a file in its place).
+    """
+    finals = [Path(p) for p in paths]
+    pending = pending_folder(finals[0])
+    if not pending.exists() and not pending.is_symlink():
+        return
+    try:
+        if not pending.is_dir() or pending.is_symlink():
+            raise FileFormatError(
+                pending, "expected a pending-commit folder; remove it by hand", field="pending"
+            )
+        if (pending / MARKER).is_file():
+            for target in finals:
+                staged = pending / target.name
+                if staged.is_file():
+                    os.replace(staged, target)
+            fsync_dir(finals[0].parent)
+            log.info("%s: completed an interrupted write of %d files", finals[0], len(finals))
+        else:
+            log.warning("%s: discarded an incomplete write; the previous files stay", finals[0])
+        shutil.rmtree(pending)
+    except OSError as err:
+        raise FileFormatError(
+            pending, f"cannot resolve an interrupted write ({_short(err)})", field="pending"
+        ) from err
+
+
+@contextmanager
+def atomic_outputs(paths: Sequence[PathLike], *, verify: bool = True) -> Iterator[list[Path]]:
+    """Yield staged paths for a set of files of one folder; on success they replace the
+    files together, or not at all.
+
+    The staged files live in a pending folder ``.<first>.pending`` beside the first file;
+    when all are written they are checked (:func:`verify_file`) and flushed to disk, a
+    marker is written last, and each is renamed into place. A process killed before the
+    marker leaves the old set (the next access deletes the pending folder); after it, the
+    next access (:func:`resolve_pending`) finishes the renames. So a reader that resolves
+    first sees the whole old set or the whole new one, never a mix: a table with another
+    run's metadata, a model with another model's card.
+
+    Raises
+    ------
+    FileFormatError
+        The files are not in one existing folder, or writing failed (full disk, read-only
+        folder): the old files stay.
+    """
+    finals = [Path(p) for p in paths]
+    if (
+        not finals
+        or len({f.parent for f in finals}) != 1
+        or len({f.name for f in finals}) != len(finals)
+    ):
+        raise InputError(f"a set of files is one or more distinct files of one folder: {finals}")
+    if not finals[0].parent.is_dir():
+        raise FileFormatError(finals[0], f"cannot write: folder {finals[0].parent} does not exist")
+    resolve_pending(finals)
+    pending = pending_folder(finals[0])
+    try:
+        pending.mkdir()
+    except OSError as err:
+        raise write_error(finals[0], err) from None
+    staged = [pending / f.name for f in finals]
+    try:
+        yield staged
+        for tmp, final in zip(staged, finals, strict=True):
+            if verify:
+                verify_file(tmp, final)  # and flushed to disk
+            else:
+                fsync_file(tmp)
+        (pending / MARKER).write_bytes(b"")
+        fsync_file(pending / MARKER)
+        fsync_dir(pending)
+    except OSError as err:  # a full disk, a read-only folder: one line naming the set
+        shutil.rmtree(pending, ignore_errors=True)
+        raise write_error(finals[0], err) from None
+    except BaseException:
+        shutil.rmtree(pending, ignore_errors=True)
+        raise
+    resolve_pending(finals)

@@ -35,11 +35,13 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from rough_map._files import (
+    PENDING,
     RUN_START,
     PathLike,
     clean_stale,
     fsync_dir,
     is_temp_name,
+    pending_folder,
     write_error,
 )
 from rough_map.errors import FileFormatError
@@ -142,7 +144,9 @@ def _carry_over(old: Path, new: Path, owned: Sequence[str]) -> None:
     and temporary ones."""
     for entry in sorted(os.scandir(old), key=lambda e: e.name):
         name = entry.name
-        if is_temp_name(name) or os.path.lexists(new / name):
+        # a pending commit of an old set (rough_map._files.atomic_outputs) is not carried:
+        # rolled forward later, it would put the old files back over this run's
+        if is_temp_name(name) or PENDING.match(name) or os.path.lexists(new / name):
             continue
         if any(fnmatch.fnmatchcase(name, pattern) for pattern in owned):
             log.info("dropping %s: an output of an earlier run that this run did not write", name)
@@ -316,6 +320,9 @@ def _move_in(stage: Path, folder: Path, owned: Sequence[str]) -> None:
                 os.unlink(entry.path)
     for name in sorted(new):
         src, dst = stage / name, folder / name
+        stale = pending_folder(dst)  # an old set's pending commit must not outlive it
+        if stale.is_dir() and not stale.is_symlink():
+            shutil.rmtree(stale, ignore_errors=True)
         if src.is_dir() and dst.is_dir() and not dst.is_symlink():
             trash = folder / f".{name}.old.{_token()}"
             os.rename(dst, trash)

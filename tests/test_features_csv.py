@@ -77,3 +77,85 @@ def test_a_table_without_its_metadata_is_one_short_line(tmp_path: Path) -> None:
     with pytest.raises(FileFormatError, match=r"metadata file features\.csv\.json is missing") as e:
         read_features(path)
     assert len(str(e.value)) - len(str(path)) <= 150
+
+
+class _Killed(BaseException):
+    """A kill (nothing after it runs)."""
+
+
+@pytest.mark.parametrize("kill_at", [0, 1, 2])
+def test_a_table_and_its_metadata_change_together(tmp_path: Path, monkeypatch, kill_at) -> None:
+    """One set (issue 31): killed before, between or after the renames of features.csv and
+    features.csv.json, the next read finds the whole old pair or the whole new one, and no
+    pending folder stays."""
+    import os
+    import shutil
+
+    from rough_map import _files
+
+    path = tmp_path / "features.csv"
+    old, new = _table(5), _table(8)
+    write_features(old, path)
+    real = os.replace
+    calls: list[str] = []
+
+    def replace(src, dst):
+        calls.append(str(dst))
+        if len(calls) == kill_at + 1 and kill_at < 2:
+            raise _Killed
+        return real(src, dst)
+
+    monkeypatch.setattr(_files.os, "replace", replace)
+    monkeypatch.setattr(shutil, "rmtree", lambda *a, **k: None)  # a kill cleans nothing
+    if kill_at < 2:
+        with pytest.raises(_Killed):
+            write_features(new, path)
+    else:
+        write_features(new, path)
+    monkeypatch.undo()
+    back = read_features(path)  # finishes the commit; a mismatched pair would warn
+    assert len(back) == len(new)  # the marker was written before the first rename
+    assert not list(tmp_path.glob(".*"))
+
+
+def test_a_write_killed_while_staging_keeps_the_old_pair(tmp_path: Path, monkeypatch) -> None:
+    import shutil
+
+    from rough_map import _files
+
+    path = tmp_path / "features.csv"
+    write_features(_table(5), path)
+    real = _files.fsync_file
+
+    def fsync(p):
+        real(p)
+        if Path(p).name == "features.csv.json":
+            raise _Killed
+
+    monkeypatch.setattr(_files, "fsync_file", fsync)
+    monkeypatch.setattr(shutil, "rmtree", lambda *a, **k: None)
+    with pytest.raises(_Killed):
+        write_features(_table(8), path)
+    monkeypatch.undo()
+    assert len(read_features(path)) == 5 and not list(tmp_path.glob(".*"))
+
+
+def test_an_old_pending_commit_does_not_outlive_its_set(tmp_path: Path) -> None:
+    """A folder replaced as a set (rough-map map --out) does not carry an old run's pending
+    commit over: rolled forward later, it would put the old table back."""
+    import shutil
+
+    from rough_map import _files
+    from rough_map._output_set import output_set
+
+    out = tmp_path / "run"
+    out.mkdir()
+    write_features(_table(5), out / "features.csv")
+    pending = _files.pending_folder(out / "features.csv")
+    pending.mkdir()  # a complete commit of the old run, killed before its renames
+    for name in ("features.csv", "features.csv.json"):
+        shutil.copy(out / name, pending / name)
+    (pending / _files.MARKER).write_bytes(b"")
+    with output_set(out, owned=("features.csv", "features.csv.json")) as stage:
+        write_features(_table(8), stage / "features.csv")
+    assert not pending.exists() and len(read_features(out / "features.csv")) == 8

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from rough_map import _files
 from rough_map.classify import (
     load_terrain_model,
     read_card,
@@ -17,7 +18,6 @@ from rough_map.classify import (
     sha256_file,
 )
 from rough_map.errors import ModelError
-from rough_map.io import _model_commit
 
 
 class Killed(BaseException):
@@ -66,10 +66,10 @@ def test_kill_between_the_renames(models, old_pair, new_files, monkeypatch, kill
             raise Killed
         return real(src, dst)
 
-    monkeypatch.setattr(_model_commit.os, "replace", replace)
+    monkeypatch.setattr(_files.os, "replace", replace)
     with pytest.raises(Killed):
         save_terrain_model(models[1], model_file.with_suffix(""))
-    monkeypatch.setattr(_model_commit.os, "replace", real)
+    monkeypatch.setattr(_files.os, "replace", real)
     assert which(model_file, models) == "new"  # the load rolled it forward
     assert leftovers(model_file.parent) == []
 
@@ -79,7 +79,7 @@ def test_kill_while_staging_keeps_the_old_pair(
     models, old_pair, new_files, monkeypatch, step
 ) -> None:
     model_file, _ = old_pair
-    real_fsync = _model_commit.fsync_file
+    real_fsync = _files.fsync_file
 
     def fsync(path: Path) -> None:
         real_fsync(path)
@@ -87,12 +87,12 @@ def test_kill_while_staging_keeps_the_old_pair(
         if path.name == names[step]:
             raise Killed
 
-    monkeypatch.setattr(_model_commit, "fsync_file", fsync)
+    monkeypatch.setattr(_files, "fsync_file", fsync)
     monkeypatch.setattr(shutil, "rmtree", lambda *a, **k: None)  # a kill cleans nothing
     with pytest.raises(Killed):
         save_terrain_model(models[1], model_file.with_suffix(""))
     monkeypatch.undo()
-    pending = _model_commit.pending_folder(model_file)
+    pending = _files.pending_folder(model_file)
     assert pending.is_dir()
     # an incomplete commit (no marker) is discarded; a complete one is rolled forward
     expected = "new" if step == "marker" else "old"
@@ -115,7 +115,7 @@ def test_every_interrupted_state_resolves(
 ) -> None:
     model_file, _ = old_pair
     folder = model_file.parent
-    pending = _model_commit.pending_folder(model_file)
+    pending = _files.pending_folder(model_file)
     pending.mkdir()
     source = new_files[0].parent
     for name in staged:
@@ -123,18 +123,18 @@ def test_every_interrupted_state_resolves(
     for name in moved:
         shutil.copy(source / name, folder / name)
     if marker:
-        (pending / _model_commit.MARKER).write_bytes(b"")
+        (pending / _files.MARKER).write_bytes(b"")
     assert which(model_file, models) == expected
     assert leftovers(folder) == []
 
 
 def test_card_read_and_save_resolve_too(models, old_pair, new_files) -> None:
     model_file, card_file = old_pair
-    pending = _model_commit.pending_folder(model_file)
+    pending = _files.pending_folder(model_file)
     pending.mkdir()
     for p in new_files:
         shutil.copy(p, pending / p.name)
-    (pending / _model_commit.MARKER).write_bytes(b"")
+    (pending / _files.MARKER).write_bytes(b"")
     assert read_card(card_file)["sha256"] == sha256_file(new_files[0])
     assert not pending.exists()
     pending.mkdir()
@@ -146,6 +146,6 @@ def test_card_read_and_save_resolve_too(models, old_pair, new_files) -> None:
 
 def test_a_file_in_place_of_the_pending_folder(old_pair) -> None:
     model_file, _ = old_pair
-    _model_commit.pending_folder(model_file).write_text("x")
+    _files.pending_folder(model_file).write_text("x")
     with pytest.raises(ModelError, match="expected a pending-commit folder"):
         load_terrain_model(model_file)

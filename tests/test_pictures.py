@@ -246,8 +246,15 @@ def test_every_map_picture_in_a_browser(tmp_path, long_map):
     page = tmp_path / "index.html"
     head = "<!doctype html><html><head><meta charset='utf-8'><title>maps</title></head>"
     page.write_text(f"{head}<body><h1>maps</h1>{figures}</body></html>", encoding="utf-8")
+    shot = tmp_path / "shot.png"
     res = subprocess.run(
-        [sys.executable, str(CHECKER), str(page), "--size", "1366x768", "--size", "1024x768"],
+        [sys.executable, str(CHECKER), str(page), "--size", "1366x768", "--size", "1024x768",
+         "--screenshot", str(shot)],
         capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert res.returncode == 0, res.stdout + res.stderr
+    import matplotlib.image as mpimg
+
+    pixels = mpimg.imread(shot)  # the whole page as Chromium drew it
+    assert pixels.shape[1] == 1366 and pixels.shape[0] > 768 * len(paths) / 3
+    assert pixels[..., :3].std() > 0.05  # drawn, not blank

@@ -20,10 +20,10 @@ rebuilt model's structure is checked and it must pass a trial prediction
 (:mod:`rough_map.classify._checks`). Every failure is a one-line :class:`ModelError` naming
 the file.
 
-A model and its card are written as one commit (:mod:`rough_map.io._model_commit`): both
-into ``.NAME.pending/``, then a ``complete`` marker, then renamed into place. A save killed
-at any moment leaves the old pair, the new pair, or a pending folder that the next save,
-load or card read of NAME resolves (rolled forward if complete, else discarded).
+A model and its card are written as one set of files (:func:`rough_map._files.atomic_outputs`):
+both into ``.NAME.skops.pending/``, then a ``complete`` marker, then renamed into place. A
+save killed at any moment leaves the old pair, the new pair, or a pending folder that the
+next save, load or card read of NAME resolves (rolled forward if complete, else discarded).
 """
 
 from __future__ import annotations
@@ -40,13 +40,13 @@ from pathlib import Path
 from typing import Any
 
 from rough_map._bounded import clip
+from rough_map._files import atomic_outputs
 from rough_map.classify._checks import check_loaded_model
 from rough_map.classify.model import MODEL_FORMAT, TerrainModel
 from rough_map.classify.spectral import FEATURE_DOC, INPUT_SCALARS
 from rough_map.config import jsonable
-from rough_map.errors import ModelError
+from rough_map.errors import FileFormatError, ModelError
 from rough_map.io._model_archive import MAX_FILE, brief, check_archive
-from rough_map.io._model_commit import commit_pair, resolve_pending
 from rough_map.io.model_files import (
     CARD_FORMAT,
     CARD_SUFFIX,
@@ -54,6 +54,7 @@ from rough_map.io.model_files import (
     model_paths,
     read_card,
     resolve_model,
+    resolve_pending,
     sha256_file,
 )
 
@@ -229,8 +230,14 @@ def save_terrain_model(
         card.update(build_card(model, path.with_name(model_file.name), card_extra))
         path.write_text(json.dumps(card, indent=2) + "\n", encoding="utf-8")
 
+    # one set: a new model never sits beside an old card (rough_map._files.atomic_outputs)
     try:
-        commit_pair(model_file, card_file, write_model, write_card)
+        resolve_pending(model_file, card_file)
+        with atomic_outputs([model_file, card_file]) as (model_tmp, card_tmp):
+            write_model(model_tmp)
+            write_card(card_tmp)  # hashes the staged model beside it, under its final name
+    except FileFormatError as err:
+        raise ModelError(str(err)) from None
     except OSError as err:
         raise ModelError(f"{model_file}: cannot write the model ({brief(err)})") from err
     log.info("wrote %s (%d bytes) and %s", model_file, card["size_bytes"], card_file)

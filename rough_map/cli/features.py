@@ -76,10 +76,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     cloud.add_argument(
         "--frame",
         choices=("vehicle", "world"),
-        default=None,
-        help="frame of the cloud's points: vehicle (x forward, y left, z up; the default "
-        "without --at) or world (a world-frame or georeferenced cloud, read at --at; the "
-        "default with it). A traverse names its clouds' frame in traverse.json (cloud_frame)",
+        help="frame of the cloud's points: vehicle (the default without --at) or world (read "
+        "at --at; the default with it); a traverse names it in traverse.json (cloud_frame)",
     )
     cloud.add_argument(
         "--at",

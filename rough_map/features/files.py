@@ -15,7 +15,6 @@ import io
 import json
 import logging
 import math
-from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +22,7 @@ import numpy as np
 
 from rough_map import __version__
 from rough_map._bounded import clip, parse_json, read_document_text, short
-from rough_map._files import PathLike, atomic_output
+from rough_map._files import PathLike, atomic_output, atomic_outputs, resolve_pending
 from rough_map.errors import FileFormatError, InputError
 from rough_map.features.table import (
     BOOL_COLUMNS,
@@ -87,9 +86,10 @@ def write_features(table: FeatureTable, path: PathLike) -> Path:
     the traverse name and the wavenumbers of the ``psd_NN`` columns, which
     :func:`read_features` needs) is written to ``<path>.json`` beside it, e.g.
     ``features.csv.json``. Parquet keeps the same metadata in its key-value metadata.
-    Both files are written and checked before either replaces an old one; the metadata
-    holds the table's SHA-256 (``table_sha256``), so a pair that does not belong together
-    (a run killed between the two renames, or a table edited since) shows.
+    The two files are one set (:func:`rough_map._files.atomic_outputs`): they replace old
+    ones together, and a run killed between the renames is finished by the next read or
+    write. The metadata holds the table's SHA-256 (``table_sha256``), so a table edited
+    since shows.
 
     Returns
     -------
@@ -126,14 +126,12 @@ def write_features(table: FeatureTable, path: PathLike) -> Path:
     meta = features_metadata(table)
     meta["table_sha256"] = hashlib.sha256(body).hexdigest()  # ties the pair together
     meta_text = json.dumps(meta, indent=1, ensure_ascii=False)
-    # both files are written and checked before either takes its name (the table, then
-    # the metadata, as the stack unwinds): a run killed between the two renames leaves a
-    # pair whose table_sha256 disagrees, which read_features reports
-    with ExitStack() as stack:
-        meta_tmp = stack.enter_context(atomic_output(features_metadata_path(path)))
-        meta_tmp.write_text(meta_text + "\n", encoding="utf-8")
-        table_tmp = stack.enter_context(atomic_output(path))
+    # one set: both files are written, checked and flushed before either takes its name,
+    # and a run killed between the two renames is finished by the next read or write
+    # (rough_map._files.atomic_outputs); table_sha256 still shows a table edited since
+    with atomic_outputs([path, features_metadata_path(path)]) as (table_tmp, meta_tmp):
         table_tmp.write_bytes(body)
+        meta_tmp.write_text(meta_text + "\n", encoding="utf-8")
     return path
 
 
@@ -198,6 +196,9 @@ def read_features(path: PathLike) -> FeatureTable:
         there = path.is_file()
     except OSError:  # a name too long
         there = False
+    else:  # a write of the table and its metadata killed between the renames: finish it
+        resolve_pending([path, features_metadata_path(path)])
+        there = path.is_file()
     if not there:
         raise FileFormatError(path, "no such features file")
     if path.suffix.lower() == ".parquet":

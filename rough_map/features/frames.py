@@ -7,10 +7,9 @@ For every frame the pass gives what the rest of rough_map needs from the raw dat
   lattice of the map's cell size, from which a map's elevation layer is built.
 
 Nothing reads a cloud again after this pass. :func:`iter_frames` sends the frames to worker
-processes (joblib) in chunks and yields the results in frame order, so what follows does not
-depend on the number of workers: ``n_jobs=2`` gives the same bytes as ``n_jobs=1``. Each
-worker runs single-threaded (BLAS pinned with threadpoolctl, OpenCV told so), since the
-processes already use the cores and the per-frame matrices are small.
+processes (joblib) in chunks and yields them in frame order: ``n_jobs=2`` gives the same
+bytes as ``n_jobs=1``. Each worker runs single-threaded (BLAS pinned with threadpoolctl,
+OpenCV told so): the processes use the cores, and the per-frame matrices are small.
 """
 
 from __future__ import annotations
@@ -33,7 +32,7 @@ from rough_map._blas import one_blas_thread
 from rough_map.config import StereoCalibration
 from rough_map.errors import FileFormatError, InputError
 from rough_map.features.extract import GriddedFrame, grid_frame, measure_frames
-from rough_map.geometry import rotation_matrix, transform_columns
+from rough_map.geometry import pose_matrix, rotation_matrix, transform_columns
 from rough_map.io.pointcloud import read_cloud
 from rough_map.io.traverse import Traverse
 from rough_map.patch import Extraction
@@ -92,6 +91,8 @@ class FrameJob:
         The frame's files.
     imu : tuple of 2 float or None
         IMU roll and pitch, rad.
+    world_cloud : bool
+        The cloud is in the world frame (``cloud_frame``): moved by ``pose`` when read.
     """
 
     index: int
@@ -102,6 +103,7 @@ class FrameJob:
     left: Path | None = None
     right: Path | None = None
     imu: tuple[float, float] | None = None
+    world_cloud: bool = False
 
 
 def frame_jobs(traverse: Traverse) -> list[FrameJob]:
@@ -121,6 +123,7 @@ def frame_jobs(traverse: Traverse) -> list[FrameJob]:
                 left=None if f.left is None else resolve(f.left, f"frames[{i}].left"),
                 right=None if f.right is None else resolve(f.right, f"frames[{i}].right"),
                 imu=None if f.imu is None else (f.imu.roll, f.imu.pitch),
+                world_cloud=traverse.spec.cloud_frame == "world",
             )
         )
     return jobs
@@ -315,7 +318,11 @@ def read_points(job: FrameJob, settings: FramePass) -> tuple[NDArray[np.float64]
         if not use_stereo:
             if job.cloud is None:
                 return None, "no point cloud"
-            return read_cloud(job.cloud), ""
+            points = read_cloud(job.cloud)
+            if job.world_cloud:  # p_vehicle = R^T (p_world - t)
+                m = pose_matrix(job.pose)
+                points = (points - m[:3, 3]) @ m[:3, :3]
+            return points, ""
         if job.left is None or job.right is None:
             # Stereo is often recorded at a lower rate than the clouds: not an error of the run.
             return None, "no stereo pair"
@@ -407,14 +414,11 @@ def start_workers(n_jobs: int) -> None:
 def children_ignore_sigint() -> Iterator[None]:
     """Processes started in this block ignore SIGINT, a disposition they inherit.
 
-    Ctrl-C reaches every process of the terminal's group. Only this one should act on it:
-    it stops with one line and exit status 130 and its pool shuts the workers down. A
-    worker that took it too would print its own traceback (one interrupted while importing,
-    25 lines) and leave loky's semaphores behind. The signal is also blocked in this process
-    meanwhile: Linux keeps a blocked signal pending even while it is ignored, so a Ctrl-C
-    that comes as the workers start is taken as the block ends, with the handler back
-    (ignored alone, it would be lost and the run would go on to its end). Outside the main
-    thread (where no signal handler can be set) the block does nothing."""
+    Ctrl-C reaches every process of the terminal's group; only this one acts on it (one
+    line, exit 130, the pool shuts the workers down): a worker would print a traceback and
+    leave loky's semaphores behind. It is blocked here too: Linux keeps a blocked signal
+    pending though ignored, so a Ctrl-C as the workers start is taken when the block ends
+    (ignored alone, it was lost). Outside the main thread the block does nothing."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return

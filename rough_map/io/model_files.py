@@ -15,9 +15,9 @@ import os
 from pathlib import Path
 from typing import Any
 
-from rough_map.errors import ModelError
+from rough_map import _files
+from rough_map.errors import FileFormatError, ModelError
 from rough_map.io._model_archive import MAX_DEPTH, brief, json_depth
-from rough_map.io._model_commit import resolve_pending
 from rough_map.resources import model_base, shipped_models, user_models_dir
 
 __all__ = [
@@ -29,6 +29,7 @@ __all__ = [
     "model_paths",
     "read_card",
     "resolve_model",
+    "resolve_pending",
     "sha256_file",
 ]
 
@@ -64,6 +65,15 @@ def model_paths(name: str | Path) -> tuple[Path, Path]:
             break
     base = path.with_name(text)
     return base.with_name(text + MODEL_SUFFIX), base.with_name(text + CARD_SUFFIX)
+
+
+def resolve_pending(model_file: Path, card_file: Path) -> None:
+    """Finish or discard an interrupted save of a model and its card (one set of files,
+    :func:`rough_map._files.resolve_pending`), as a ModelError when it cannot."""
+    try:
+        _files.resolve_pending([model_file, card_file])
+    except FileFormatError as err:
+        raise ModelError(str(err)) from None
 
 
 def resolve_model(name: str | Path) -> tuple[Path, Path]:
