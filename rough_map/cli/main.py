@@ -17,6 +17,7 @@ import os
 import pkgutil
 import re
 import shlex
+import signal
 import sys
 import warnings
 
@@ -73,9 +74,20 @@ def main(argv: list[str] | None = None) -> int:
     """Run ``rough-map`` with ``argv`` (default: ``sys.argv[1:]``); returns the exit status.
 
     A bad argument returns 2 after one line on stderr, as an error of a command does;
-    ``--help`` and ``--version`` return 0.
+    ``--help`` and ``--version`` return 0; a Ctrl-C at any moment, 130 after one line.
     """
     argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        # blocked since rough_map.cli was imported (see there): the main thread takes it
+        # again, and a Ctrl-C that came during the imports is taken now
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+        return _main(argv)
+    except KeyboardInterrupt:  # while the parser is built, or the arguments read
+        print("rough-map: interrupted", file=sys.stderr)
+        return 130
+
+
+def _main(argv: list[str]) -> int:
     try:
         parser = build_parser()
     except Exception as exc:  # a broken install: still one line, no traceback
