@@ -22,12 +22,14 @@ def _name(path: Path) -> str:
 
 @pytest.mark.parametrize("path", MODULES, ids=_name)
 def test_modules_are_small(path: Path) -> None:
-    assert len(path.read_text(encoding="utf-8").splitlines()) <= 600
+    """A bound that catches a module grown out of its concept (issue 31: modules are split
+    by concept, and the old 600-line bound had files split off only to meet it)."""
+    assert len(path.read_text(encoding="utf-8").splitlines()) <= 1000
 
 
 @pytest.mark.parametrize("path", MODULES, ids=_name)
 def test_functions_are_short(path: Path) -> None:
-    """At most 80 lines of code per function, its docstring not counted."""
+    """At most 120 lines of code per function, its docstring not counted."""
     tree = ast.parse(path.read_text(encoding="utf-8"))
     long = []
     for node in ast.walk(tree):
@@ -37,7 +39,7 @@ def test_functions_are_short(path: Path) -> None:
             if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant):
                 doc = body[0]
                 lines -= (doc.end_lineno or doc.lineno) - doc.lineno + 1
-            if lines > 80:
+            if lines > 120:
                 long.append(f"{node.name}: {lines} lines")
     assert long == []
 

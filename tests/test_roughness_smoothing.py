@@ -565,7 +565,7 @@ def test_the_map_refuses_an_unknown_roughness(tmp_path: Path) -> None:
 
 def test_the_jump_statistic_is_the_quadratic_form_of_the_bank() -> None:
     """``d' C^-1 d`` written out for the GLR bank, against LAPACK; singular: no jump."""
-    from rough_map.filter._small import quad2
+    from rough_map.filter.roughness import quad2
 
     rng = np.random.default_rng(4)
     a = rng.normal(size=(9, 2, 2))

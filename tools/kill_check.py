@@ -41,7 +41,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 ROUGH_MAP = [sys.executable, "-m", "rough_map"]
-TEMP = re.compile(r"^\..+\.[0-9a-f]{12}\.tmp(\..*)?$|^\..+\.(tmp|old)\.[0-9a-f]{12}$")
+TEMP = re.compile(
+    r"^\..+\.[0-9a-f]{12}\.tmp(\..*)?$|^\..+\.(tmp|old)\.[0-9a-f]{12}$|^\..+\.pending$"
+)
 USER_FILE = "notes_of_the_user.txt"
 
 
@@ -229,16 +231,17 @@ def main() -> int:
             ["features", t1, "--out", "feat/features.csv"],
             ["features", t2, "--out", "feat/features.csv"],
             ["feat/features.csv"],
-            [lambda w: staged(w, "feat/.features.csv.*.tmp.json")],
+            [lambda w: staged(w, "feat/.features.csv.pending/complete")],
         ),
         Command(
             "train",
             ["train", t1, t2, "--out", "train/model", "--save-features", "train/feats",
-             "--cv", "2"],
+             "--cv", "2", "--force"],
             ["train", t2, t1, "--out", "train/model", "--save-features", "train/feats", "--cv", "2",
-             "--no-tilt"],
+             "--no-tilt", "--force"],
             ["train/feats"],
-            [lambda w: staged(w, ".feats.tmp.*"), lambda w: staged(w, "train/.model.*.tmp*")],
+            [lambda w: staged(w, ".feats.tmp.*"),
+             lambda w: staged(w, "train/.model.skops.pending/complete")],
         ),
     ]  # fmt: skip
     (work / "feat").mkdir()

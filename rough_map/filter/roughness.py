@@ -64,7 +64,6 @@ from rough_map.classify.evidence import frame_steps
 from rough_map.classify.validation import check_fitted, is_number
 from rough_map.config import load_model
 from rough_map.features.table import SMOOTH_COLUMNS, FeatureTable
-from rough_map.filter._small import inv2, quad2
 from rough_map.filter.defects import IsolatedSpikes
 from rough_map.filter.roughness_config import CONFIG_FILE, RoughnessSmoothingConfig, spread
 from rough_map.filter.roughness_fit import labelled_segments, learn_noise_model, level_transform
@@ -595,3 +594,32 @@ def smooth_table(
         Frames of isolated defects (default: the smoother's detector finds them).
     """
     return (smoother or load_roughness_smoother()).smooth_table(table, defect=defect)
+
+
+# -- 2 x 2 linear algebra written out, for the per-frame loops: at this size LAPACK's calls
+# (and numpy's error-state context) cost several times the arithmetic ------------------------
+
+
+def quad2(C: NDArray[np.float64], d: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``d_k' C_k^-1 d_k`` for a stack of 2 x 2 matrices ``C`` (k, 2, 2) and vectors ``d``
+    (k, 2), written out (the jump test's statistic, per frame); a singular ``C_k`` gives
+    -inf, no change of ground."""
+    a, b, c, e = C[:, 0, 0], C[:, 0, 1], C[:, 1, 0], C[:, 1, 1]
+    d0, d1 = d[:, 0], d[:, 1]
+    det = a * e - b * c
+    num = d0 * (e * d0 - b * d1) + d1 * (a * d1 - c * d0)
+    if det.all():  # (np.errstate costs more than the arithmetic here)
+        return num / det
+    with np.errstate(divide="ignore", invalid="ignore"):
+        stat = num / det
+    return np.where(det != 0, stat, -np.inf)
+
+
+def inv2(m: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The inverse of a 2 x 2 matrix, written out: the filter inverts two a frame, and
+    LAPACK's call costs several times the arithmetic at this size."""
+    (a, b), (c, d) = m.tolist()
+    det = a * d - b * c
+    if det == 0.0 or not math.isfinite(det):
+        return np.asarray(np.linalg.inv(m), dtype=float)  # a singular one raises, as before
+    return np.array([[d / det, -b / det], [-c / det, a / det]])
