@@ -165,7 +165,7 @@ def _load(args: argparse.Namespace) -> NDArray[np.float64]:
     from rough_map.io.pointcloud import read_cloud
 
     args.cloud_crs = None
-    if args.source.suffix.lower() in (".las", ".laz"):
+    if args.source.suffix.lower() in (".las", ".laz") and args.columns is None:
         from rough_map.io.las import read_las
 
         las = read_las(args.source)  # once: its points and its CRS

@@ -27,7 +27,7 @@ from rough_map.errors import InputError
 __all__ = ["Page", "page_views"]
 
 #: Cells sampled to place the pages (a strided subset of the known cells of a large map).
-_SAMPLE = 2_000_000
+_SAMPLE = 200_000
 
 
 @dataclass(frozen=True)
