@@ -416,20 +416,24 @@ def coverage_report(grid: GridMap) -> dict[str, float]:
 
 
 def write_tables(result: TraverseAnalysis, out_dir: PathLike) -> dict[str, Path]:
-    """``features.csv`` with its metadata ``features.csv.json`` and, with a model,
-    ``labels.csv`` (raw and filtered class per frame,
-    :func:`rough_map.export.labels.write_labels`).
+    """``features.csv`` with its metadata ``features.csv.json``, with a model ``labels.csv``
+    (raw and filtered class per frame, :func:`rough_map.export.labels.write_labels`), and
+    ``map_path.geojson``, the path and the frames (:mod:`rough_map.export.vector`).
 
     Returns
     -------
     dict of str to Path
-        ``"features"``, ``"features_metadata"`` and ``"labels"`` (with a model).
+        ``"features"``, ``"features_metadata"``, ``"labels"`` (with a model) and
+        ``"path_geojson"``.
     """
     out = Path(out_dir)
     features = write_features(result.features, out / "features.csv")
     paths = {"features": features, "features_metadata": features_metadata_path(features)}
     if result.prediction is not None:
         paths["labels"] = write_labels(result.features, result.prediction, out / "labels.csv")
+    paths["path_geojson"] = write_path_geojson(
+        result.features, result.map.crs, out / "map_path.geojson", result.prediction
+    )
     return paths
 
 
@@ -503,9 +507,6 @@ def _write_outputs(
         written = files.result()
     written.update({f"png_{name}": path for name, path in pngs.items()})
     written.update(write_tables(result, out))
-    written["path_geojson"] = write_path_geojson(
-        result.features, grid.crs, out / "map_path.geojson", result.prediction
-    )
     if state and result.mapper is not None:
         written["state"] = result.mapper.save_state(out / "map_state.npz")
     return written

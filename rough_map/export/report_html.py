@@ -61,6 +61,7 @@ _DATA_FILES = (
     ("features.csv", "per-frame features: pose, R, w, σ, validity, label"),
     ("features.csv.json", "what features.csv holds: columns, units, wavenumbers, source"),
     ("labels.csv", "per-frame raw and filtered class with confidence, level, defect flag"),
+    ("map_path.geojson", "the path and the frames (R, w, ISO class, class, level) for GIS"),
     ("evaluation.json", "the evaluation: confusion matrices and scores, raw and filtered"),
 )
 

@@ -404,10 +404,17 @@ def start_workers(n_jobs: int) -> None:
         return
     from joblib.externals.loky import get_reusable_executor
 
-    with children_ignore_sigint():
-        executor = get_reusable_executor(max_workers=workers - 1)
-        for _ in range(workers - 1):
-            executor.submit(_ready)
+    executor = None
+    try:
+        with children_ignore_sigint():
+            executor = get_reusable_executor(max_workers=workers - 1)
+            for _ in range(workers - 1):
+                executor.submit(_ready)
+    except BaseException:  # a Ctrl-C taken as the block ends: the workers go with it
+        if executor is not None:
+            executor.shutdown(wait=True)
+            _stop_resource_tracker()
+        raise
 
 
 @contextmanager
@@ -527,9 +534,13 @@ class FrameStream:
         if workers > 1 and len(chunks) > 1:
             from joblib.externals.loky import get_reusable_executor
 
-            with children_ignore_sigint():
-                self._executor = get_reusable_executor(max_workers=workers - 1)
-                self._submit(self._hold)
+            try:
+                with children_ignore_sigint():
+                    self._executor = get_reusable_executor(max_workers=workers - 1)
+                    self._submit(self._hold)
+            except BaseException:  # a Ctrl-C taken as the block ends: stop the workers
+                self.close()
+                raise
 
     def _submit(self, upto: int) -> None:
         while len(self._futures) < upto:
