@@ -47,7 +47,7 @@ from rough_map.io.rosbag.messages import (
 )
 from rough_map.io.rosbag.reader import topic_field, topic_messages
 from rough_map.io.rosbag.tf import Transform, static_transforms, tf_transforms
-from rough_map.io.rosbag.trajectory import Trajectory, read_trajectory
+from rough_map.io.rosbag.trajectory import Trajectory, read_trajectory, timed_samples
 
 if TYPE_CHECKING:
     from rosbags.highlevel import AnyReader
@@ -133,26 +133,6 @@ def vehicle_trajectory(
     return _navsat_trajectory(reader, path, topic, crs, vehicle_frame)
 
 
-def _trajectory(
-    samples: list[tuple[int, list[float], np.ndarray]], path: Path, topic: str, what: str,
-    frame_id: str, child: str,
-) -> Trajectory:  # fmt: skip
-    """Sorted, deduplicated samples (ns, position, quaternion) as a Trajectory."""
-    if not samples:
-        raise FileFormatError(path, f"no usable {what} on {topic!r}", field=topic_field(topic))
-    samples.sort(key=lambda s: s[0])
-    t_ns, keep = np.unique(np.array([s[0] for s in samples], dtype=np.int64), return_index=True)
-    if len(t_ns) < len(samples):
-        log.warning("%s: %d %s with a repeated stamp ignored", path, len(samples) - len(t_ns), what)
-    return Trajectory(
-        t_ns=t_ns,
-        position=np.array([samples[i][1] for i in keep], dtype=float),
-        quaternion=np.array([samples[i][2] for i in keep], dtype=float),
-        frame_id=frame_name(frame_id),
-        child_frame_id=frame_name(child),
-    )
-
-
 def _pose_trajectory(
     reader: AnyReader, path: Path, topic: str, msgtype: str, vehicle_frame: str
 ) -> Trajectory:
@@ -169,7 +149,11 @@ def _pose_trajectory(
         samples.append((stamp_ns(msg.header, receive_ns), position, quaternion))
     if skipped:
         log.warning("%s: %d poses on %s without a finite pose skipped", path, skipped, topic)
-    return _trajectory(samples, path, topic, "pose", frame_id, vehicle_frame)
+    none = f"no usable pose on {topic!r}"
+    return timed_samples(
+        samples, path, topic, none=none, repeated=f"poses on {topic}", frame_id=frame_id,
+        child=vehicle_frame,
+    )  # fmt: skip
 
 
 def _links(reader: AnyReader, path: Path, topic: str) -> dict[tuple[str, str], list[Transform]]:
@@ -296,7 +280,12 @@ def _navsat_trajectory(
     yaw = _headings(position[:, :2])
     quaternion = Rotation.from_euler("z", yaw[:, None]).as_quat()
     samples = [(f[0], list(p), q) for f, p, q in zip(fixes, position, quaternion, strict=True)]
-    return _trajectory(samples, path, topic, "fix", "gnss", vehicle_frame), crs
+    none = f"no valid NavSatFix on {topic!r}"
+    trajectory = timed_samples(
+        samples, path, topic, none=none, repeated=f"fixes on {topic}", frame_id="gnss",
+        child=vehicle_frame,
+    )  # fmt: skip
+    return trajectory, crs
 
 
 def metric_crs(crs: Crs) -> Any:

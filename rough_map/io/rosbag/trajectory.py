@@ -24,7 +24,7 @@ from rough_map.io.rosbag.messages import (
     stamp_ns,
     valid_quaternion,
 )
-from rough_map.io.rosbag.reader import open_bag, topic_messages
+from rough_map.io.rosbag.reader import open_bag, topic_field, topic_messages
 
 if TYPE_CHECKING:
     from rosbags.highlevel import AnyReader
@@ -164,21 +164,47 @@ def read_trajectory(reader: AnyReader, path: Path, topic: str, msgtype: str) -> 
     if skipped:
         # a zero, non-finite or overflowing quaternion is no orientation either
         log.warning("%s: %d messages on %s without orientation skipped", path, skipped, topic)
+    return timed_samples(
+        samples,
+        path,
+        topic,
+        none=f"no usable {msgtype} message on {topic!r}",
+        repeated=f"messages on {topic}",
+        frame_id=frame_id,
+        child=child_frame_id,
+    )
+
+
+def timed_samples(
+    samples: list[tuple[int, list[float], np.ndarray]],
+    path: Path,
+    topic: str,
+    *,
+    none: str,
+    repeated: str,
+    frame_id: str,
+    child: str,
+) -> Trajectory:
+    """Samples ``(ns, position, quaternion)`` of a topic, sorted by stamp with repeated
+    stamps left out (``repeated`` names them in the warning), as a :class:`Trajectory`.
+
+    Raises
+    ------
+    FileFormatError
+        No sample (the message ``none``).
+    """
     if not samples:
-        raise FileFormatError(path, f"no usable {msgtype} message on {topic!r}", field=topic)
+        raise FileFormatError(path, none, field=topic_field(topic))
     samples.sort(key=lambda sample: sample[0])
     t_ns, keep = np.unique(np.array([s[0] for s in samples], dtype=np.int64), return_index=True)
     if len(t_ns) < len(samples):
         log.warning(
-            "%s: %d messages on %s with a repeated stamp ignored",
-            path,
-            len(samples) - len(t_ns),
-            topic,
+            "%s: %d %s with a repeated stamp ignored", path, len(samples) - len(t_ns), repeated
         )
     return Trajectory(
         t_ns=t_ns,
         position=np.array([samples[i][1] for i in keep], dtype=float),
-        quaternion=np.array([samples[i][2] for i in keep]),
+        quaternion=np.array([samples[i][2] for i in keep], dtype=float),
         frame_id=frame_name(frame_id),
-        child_frame_id=frame_name(child_frame_id),
+        child_frame_id=frame_name(child),
     )
