@@ -441,19 +441,26 @@ def resolve_pending(paths: Sequence[PathLike]) -> None:
                 pending, "expected a pending-commit folder; remove it by hand", field="pending"
             )
         if (pending / MARKER).is_file():
-            for target in finals:
-                staged = pending / target.name
-                if staged.is_file():
-                    os.replace(staged, target)
-            fsync_dir(finals[0].parent)
+            _roll_forward(pending, finals)
             log.info("%s: completed an interrupted write of %d files", finals[0], len(finals))
         else:
             log.warning("%s: discarded an incomplete write; the previous files stay", finals[0])
-        shutil.rmtree(pending)
+            shutil.rmtree(pending)
     except OSError as err:
         raise FileFormatError(
             pending, f"cannot resolve an interrupted write ({_short(err)})", field="pending"
         ) from err
+
+
+def _roll_forward(pending: Path, finals: Sequence[Path]) -> None:
+    """Rename each staged file still in the committed ``pending`` folder onto its final
+    name (idempotent), then remove the folder."""
+    for target in finals:
+        staged = pending / target.name
+        if staged.is_file():
+            os.replace(staged, target)
+    fsync_dir(finals[0].parent)
+    shutil.rmtree(pending)
 
 
 @contextmanager
@@ -507,4 +514,9 @@ def atomic_outputs(paths: Sequence[PathLike], *, verify: bool = True) -> Iterato
     except BaseException:
         shutil.rmtree(pending, ignore_errors=True)
         raise
-    resolve_pending(finals)
+    try:
+        _roll_forward(pending, finals)  # the commit itself: a kill from here on is finished
+    except OSError as err:  # by the next access (resolve_pending)
+        raise FileFormatError(
+            pending, f"cannot finish the write ({_short(err)})", field="pending"
+        ) from err

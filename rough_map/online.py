@@ -275,13 +275,14 @@ class OnlineMapper:
             self.tiles.cover(x, y, yaw)
         row = out.row
         raw = posterior = None
+        novelty = math.nan
         if classes and self.model is not None:
-            raw, posterior = self._classify(out, x, y)
+            raw, posterior, novelty = self._classify(out, x, y)
         level = self._level(row) if classes else math.nan
         touched = 0
         if row["valid"]:
             probs = posterior if classes else None
-            observation = _observation(row, probs, level)
+            observation = _observation(row, probs, level, novelty)
             if not roughness:
                 observation["R"] = math.nan  # fused later (fuse_classes)
             touched = self.tiles.fuse_patch(x, y, yaw, keep_box=not classes, **observation)
@@ -310,8 +311,9 @@ class OnlineMapper:
 
     def _classify(
         self, out: FrameOutput, x: float, y: float
-    ) -> tuple[NDArray[np.float64] | None, NDArray[np.float64]]:
-        """The classifier's probabilities of the frame and the forward-filtered posterior."""
+    ) -> tuple[NDArray[np.float64] | None, NDArray[np.float64], float]:
+        """The classifier's probabilities of the frame, the forward-filtered posterior and
+        the frame's novelty (NaN: none)."""
         model = self.model
         assert model is not None
         step = (
@@ -329,11 +331,12 @@ class OnlineMapper:
         )
         raw_all, valid = model.raw_proba(table)
         raw = raw_all[0] if valid[0] else None
+        novelty = float(model.novelty(table)[0]) if raw is not None else math.nan
         flt = model.filter_
         if flt is None or model.evidence_per_m_ is None:
             if raw is None:
-                return None, np.full(len(self.classes), 1.0 / len(self.classes))
-            return raw, raw
+                return None, np.full(len(self.classes), 1.0 / len(self.classes)), novelty
+            return raw, raw, novelty
         if self._log_belief is None:
             belief = np.log(flt.class_prior_)
         else:
@@ -344,7 +347,7 @@ class OnlineMapper:
             ll = emission_log_likelihood(raw[None, :], [step], model.evidence_per_m_)[0]
             belief = discrete_bayes.update(belief, ll)
         self._log_belief = belief
-        return raw, np.exp(belief)
+        return raw, np.exp(belief), novelty
 
     # -- the whole run -----------------------------------------------------------------
 
@@ -358,6 +361,7 @@ class OnlineMapper:
         *,
         levels: bool = True,
         roughness: Mapping[str, ArrayLike] | None = None,
+        novelty: ArrayLike | None = None,
     ) -> None:
         """Fuse class probabilities computed over the whole run (e.g. smoothed), one row
         per frame added with ``classes=False`` (NaN rows: none; None: no classes), and the
@@ -366,9 +370,15 @@ class OnlineMapper:
         ``roughness`` gives the roughness of each frame computed over the whole run, for
         frames added with ``roughness=False``: arrays ``R`` (m³/rad), ``w``, ``sigma_R``
         (m³/rad) and ``sigma_w``, one value per frame (e.g. smoothed along the path,
-        :class:`rough_map.filter.RoughnessSmoother`); the levels then come from this R."""
+        :class:`rough_map.filter.RoughnessSmoother`); the levels then come from this R.
+        ``novelty`` gives each frame's novelty score (NaN: none;
+        :attr:`rough_map.classify.TerrainPrediction.novelty`), fused with its classes."""
         rows = self._collect.rows
         extra = _per_frame(roughness, len(rows))
+        if novelty is not None:
+            extra["novelty"] = np.asarray(novelty, dtype=float)
+            if extra["novelty"].shape != (len(rows),):
+                raise InputError(f"novelty needs one value per frame ({len(rows)},)")
         p = (
             np.full((len(rows), len(self.classes)), np.nan)
             if proba is None
@@ -385,7 +395,7 @@ class OnlineMapper:
             valid = np.array([bool(row["valid"]) for row in rows])
             R = extra["R"] if "R" in extra else [r["R"] if r["valid"] else math.nan for r in rows]
             level_of = np.where(valid, self._levels(R), math.nan)
-        # kept for replay(): each frame's classes, level and roughness as fused here
+        # kept for replay(): each frame's classes, level, roughness and novelty as fused here
         self._late = (np.where(known[:, None], p, np.nan), level_of, extra)
         for i, row in enumerate(rows):
             if not row["valid"]:
@@ -429,6 +439,7 @@ class OnlineMapper:
                     row,
                     None if p is None or not np.isfinite(p[i]).all() else p[i],
                     math.nan if level_of is None else float(level_of[i]),
+                    math.nan,  # or the frame's, in extra
                 )
                 obs.update({k: float(v[i]) for k, v in extra.items()})
                 replayed.cover(x, y, yaw)
@@ -483,7 +494,9 @@ def _per_frame(roughness: Mapping[str, ArrayLike] | None, n: int) -> dict[str, N
     return out
 
 
-def _observation(row: dict[str, Any], probs: NDArray[np.float64] | None, level: float) -> dict:
+def _observation(
+    row: dict[str, Any], probs: NDArray[np.float64] | None, level: float, novelty: float
+) -> dict:
     return {
         "t": float(row.get("t", math.nan)),
         "R": float(row.get("R", math.nan)),
@@ -492,4 +505,5 @@ def _observation(row: dict[str, Any], probs: NDArray[np.float64] | None, level: 
         "sigma_w": float(row.get("sigma_w", math.nan)),
         "probs": probs,
         "level": level,
+        "novelty": novelty,
     }

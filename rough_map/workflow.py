@@ -258,6 +258,7 @@ def analyse(
     mapper.fuse_classes(
         prediction.filtered_proba if prediction is not None else None,
         roughness=_smoothed(features) if roughness == "smoothed" else None,
+        novelty=prediction.novelty if prediction is not None else None,
     )
     grid = mapper.finish()
     grid.attrs["traverse"] = traverse.name

@@ -115,6 +115,8 @@ def test_train_writes_model_and_card(trained) -> None:
     assert card["cross_validation"]["scheme"].startswith("GroupKFold")
     assert card["training_data"]["traverses"][0]["name"] == "train_a"
     assert {"level", "slope", "curvature"} <= set(card["features"]["derived"])
+    # the novelty score is fitted with every model, its threshold from the held-out folds
+    assert card["novelty"]["quantile"] == 0.99 and card["novelty"]["threshold"] > 0
     # The command as typed, -q before the command name included.
     assert card["command"].startswith("rough-map -q train ") and card["command"].endswith("--cv 2")
 
@@ -146,7 +148,12 @@ def test_evaluate_matches_sklearn_on_classify_output(sim, trained, tmp_path, cap
         assert code == 0, err
         rows = read_labels(out_csv)
         assert set(rows) >= {"raw_class", "raw_p", "filtered_class", "filtered_p"}
-        scored = (rows["valid"] == "true") & (rows["label"] != "")
+        valid = rows["valid"] == "true"
+        novelty = rows["novelty"][valid].astype(float)
+        assert np.all(novelty >= 0)
+        assert (rows["novel"][valid] == np.where(novelty > 1, "true", "false")).all()
+        assert (rows["novelty"][~valid] == "").all()
+        scored = valid & (rows["label"] != "")
         truth.append(rows["label"][scored])
         raw.append(rows["raw_class"][scored])
         filtered.append(rows["filtered_class"][scored])

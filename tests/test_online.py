@@ -106,7 +106,12 @@ def test_map_is_the_table_fusion_with_spilled_tiles(small_traverse: Path, model)
     lv = {n: i for i, n in enumerate(model.level_names_)}
     levels = np.array([lv.get(str(v), np.nan) for v in pred.level], dtype=float)
     ref = fuse_traverse(
-        result.features, pred.filtered_proba, names, levels, spec=result.extraction.patch
+        result.features,
+        pred.filtered_proba,
+        names,
+        levels,
+        spec=result.extraction.patch,
+        novelty=pred.novelty,
     )
     assert ref.shape == result.map.shape and ref.geometry.origin == result.map.geometry.origin
     estimates = [n for n in ref.layers if ref.info(n).kind != "internal"]

@@ -141,6 +141,20 @@ def _check_defects(defects: Any) -> None:
     type(defects)(**{f: getattr(defects, f) for f in fields})  # its own checks
 
 
+def _check_novelty(score: Any, n_features: int) -> None:
+    """The novelty score's class means, precisions and threshold (sizes and finiteness)."""
+    _is(score, "rough_map.classify.novelty.ClassDistance")
+    means = _array(score.means_, "novelty_.means_", 2)
+    precisions = _array(score.precisions_, "novelty_.precisions_", 3)
+    k, d = means.shape
+    if k != len(_labels(score.classes_, "novelty_.classes_")) or precisions.shape != (k, d, d):
+        raise _Bad(f"novelty_ arrays disagree: means {means.shape}, precisions {precisions.shape}")
+    if d != n_features:
+        raise _Bad(f"novelty_ has {d} features for a classifier of {n_features!r:.20}")
+    _number(score.threshold_, "novelty_.threshold_", 1e-12)
+    _number(score.quantile, "novelty_.quantile", 0.5, 1.0)
+
+
 def _check_nodes(
     left: Any, right: Any, feature: Any, leaf: Any, n_features: int, name: str
 ) -> None:
@@ -323,6 +337,10 @@ def _trial(model: Any, width: int) -> None:
                 raise _Bad(f"trial path filter ({mode}) gave a bad result")
             if len(labels) != len(X):
                 raise _Bad(f"trial path filter ({mode}) gave {len(labels)} classes")
+    if getattr(model, "novelty_", None) is not None:
+        score = np.asarray(model.novelty_.novelty(clf[:-1].transform(X)), dtype=float)
+        if score.shape != (len(X),) or np.any(score < 0):
+            raise _Bad("trial novelty score gave a bad result")
     if model.defects is not None:
         flags = np.asarray(model.defects(X[:, 0], distance))
         if flags.shape != (len(X),):
@@ -346,6 +364,8 @@ def check_loaded_model(model: Any, where: Path) -> None:
             _check_filter(model.filter_, model.classes_)
         if model.defects is not None:
             _check_defects(model.defects)
+        if getattr(model, "novelty_", None) is not None:
+            _check_novelty(model.novelty_, model.classifier_.named_steps["scale"].n_features_in_)
     except _Bad as err:
         raise ModelError(f"{where}: malformed model: {err!s:.150}") from None
     except Exception as err:  # missing attributes, wrong types, ...

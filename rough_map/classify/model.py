@@ -35,6 +35,7 @@ from rough_map.classify.evidence import (
     frame_steps,
 )
 from rough_map.classify.levels import RoughnessLevels, roughness_level
+from rough_map.classify.novelty import ClassDistance, held_out_distances
 from rough_map.classify.spectral import INPUT_SCALARS, feature_matrix
 from rough_map.classify.training import (
     CLASSIFIERS,
@@ -89,6 +90,10 @@ class TerrainPrediction:
         Distance travelled along the path in m.
     mode : str
         Filter mode used.
+    novelty : ndarray, shape (n,)
+        How unlike every trained class the frame's ground is (dimensionless, >= 0; the
+        model's :class:`~rough_map.classify.novelty.ClassDistance`): above 1 the frame is
+        :attr:`novel`. NaN for invalid frames and for a model without the score.
     defect : ndarray of bool, shape (n,)
         Frames that see an isolated defect (a short spike of R,
         the model's ``defects`` detector): the filter gives them a predict step
@@ -107,10 +112,20 @@ class TerrainPrediction:
     distance: NDArray[np.float64]
     mode: str
     defect: NDArray[np.bool_] | None = None
+    novelty: NDArray[np.float64] | None = None
 
     def __post_init__(self) -> None:
         if self.defect is None:
             object.__setattr__(self, "defect", np.zeros(len(self.valid), dtype=bool))
+        if self.novelty is None:
+            object.__setattr__(self, "novelty", np.full(len(self.valid), np.nan))
+
+    @property
+    def novel(self) -> NDArray[np.bool_]:
+        """Frames whose ground is unlike every class the model was trained on (novelty
+        above 1): their class is the nearest one, not a match."""
+        with np.errstate(invalid="ignore"):
+            return np.asarray(np.asarray(self.novelty, dtype=float) > 1.0, dtype=bool)
 
     @property
     def raw_confidence(self) -> NDArray[np.float64]:
@@ -214,6 +229,9 @@ class TerrainModel(BaseEstimator):
         Cross-validated metrics (see :meth:`fit`).
     training_ : dict
         Traverses, frame counts and :func:`training_hash` of the training data.
+    novelty_ : ClassDistance or None
+        The novelty score (:mod:`rough_map.classify.novelty`), its threshold set from the
+        held-out folds; None in a model saved without it.
     format_ : str
         :data:`MODEL_FORMAT`.
     """
@@ -332,6 +350,7 @@ class TerrainModel(BaseEstimator):
         held_out = held_out_posteriors(recipe, frames, folds, rng)
         v = frames.valid
         self.classifier_ = recipe.fit(frames.X[v], frames.y[v], folds.groups[v], rng)
+        self.novelty_ = fit_novelty(self.classifier_, frames.X, frames.y, v, folds.splits)
         steps = frame_steps(frames.distance, folds.groups)
         self.filter_, self.evidence_per_m_ = self._fit_filter(frames, folds, held_out, steps)
         filtered = filtered_held_out(
@@ -441,7 +460,8 @@ class TerrainModel(BaseEstimator):
         mode = self.mode if mode is None else mode
         if mode not in MODES:
             raise errors.InputError(f"mode must be forward, smooth or viterbi; got {mode!r}")
-        raw, valid = self.raw_proba(table)
+        X, valid = self._rows(table)
+        raw = self._proba(X, valid)
         raw_class = np.full(len(raw), "", dtype=object)
         if valid.any():
             raw_class[valid] = self.classes_[np.argmax(raw[valid], axis=1)]
@@ -467,6 +487,7 @@ class TerrainModel(BaseEstimator):
             distance=distance,
             mode=mode,
             defect=defect,
+            novelty=_logged_novelty(table.name, self._novelty(X, valid), valid),
         )
 
     def reading(self) -> Extraction:
@@ -500,6 +521,20 @@ class TerrainModel(BaseEstimator):
             The table's wavenumbers are not on the model's patch (another patch size).
         """
         self._check_fitted()
+        X, valid = self._rows(table)
+        return self._proba(X, valid), valid
+
+    def novelty(self, table: Any) -> NDArray[np.float64]:
+        """How unlike every trained class each frame's ground is (see
+        :attr:`TerrainPrediction.novelty`; NaN for invalid frames, or all NaN for a model
+        saved without the score)."""
+        self._check_fitted()
+        return self._novelty(*self._rows(table))
+
+    def _rows(self, table: Any) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        """The input rows of the classifier (the table's spectrum on the model's
+        wavenumbers) and the frames with a valid measurement."""
+        self._check_fitted()
         warn_other_rows(self.training_, table)
         X, _ = feature_matrix(table, omega=self.omega_)
         if len(table.omega) != self.omega_.size and len(X):
@@ -518,13 +553,24 @@ class TerrainModel(BaseEstimator):
             & np.isfinite(X[:, :n_scalars]).all(axis=1)
             & np.isfinite(X[:, n_scalars:]).any(axis=1)
         )
+        return X, valid
+
+    def _proba(self, X: NDArray[np.float64], valid: NDArray[np.bool_]) -> NDArray[np.float64]:
         raw = np.full((len(X), len(self.classes_)), np.nan)
         if valid.any():
             cols = np.searchsorted(self.classes_, self.classifier_.classes_)
             raw[valid] = 0.0
             with model_failures(self, "classifier"):
                 raw[np.ix_(valid, cols)] = self.classifier_.predict_proba(X[valid])
-        return raw, valid
+        return raw
+
+    def _novelty(self, X: NDArray[np.float64], valid: NDArray[np.bool_]) -> NDArray[np.float64]:
+        out = np.full(len(X), np.nan)
+        score = getattr(self, "novelty_", None)
+        if score is not None and valid.any():
+            with model_failures(self, "novelty score"):
+                out[valid] = score.novelty(self.classifier_[:-1].transform(X[valid]))
+        return out
 
     def _filter(
         self,
@@ -569,6 +615,51 @@ class TerrainModel(BaseEstimator):
                 self.defects,
             )
         return defect
+
+
+#: Share of a traverse's valid frames above which its novel frames are a warning, not news:
+#: about 1 % of the frames of trained ground are above 1 by construction.
+_NOVEL_WARNING_SHARE = 0.1
+
+
+def _logged_novelty(
+    name: str, novelty: NDArray[np.float64], valid: NDArray[np.bool_]
+) -> NDArray[np.float64]:
+    with np.errstate(invalid="ignore"):
+        n_novel = int(np.sum(novelty > 1))
+    if n_novel:
+        share = n_novel / max(int(valid.sum()), 1)
+        level = logging.WARNING if share > _NOVEL_WARNING_SHARE else logging.INFO
+        log.log(
+            level,
+            "%s: %d of %d frames (%.0f %%) look unlike every class the model was trained on "
+            "(novelty above 1): their class is the nearest one, not a match",
+            name,
+            n_novel,
+            int(valid.sum()),
+            100 * share,
+        )
+    return novelty
+
+
+def fit_novelty(
+    classifier: Any,
+    X: NDArray[np.float64],
+    y: NDArray[Any],
+    valid: NDArray[np.bool_],
+    splits: list[tuple[NDArray[np.intp], NDArray[np.intp]]],
+) -> ClassDistance:
+    """The novelty score of a fitted classifier pipeline on its training rows.
+
+    The distances are taken in the pipeline's features after scaling (everything but its
+    last step). Each fold's frames are scored by a :class:`ClassDistance` fitted on the
+    other folds, which sets the threshold; the score is then fitted on every valid frame.
+    """
+    transform = classifier[:-1]
+    Z = np.full((len(X), len(transform.get_feature_names_out())), np.nan)
+    Z[valid] = transform.transform(X[valid])
+    held_out = held_out_distances(Z, y, splits)
+    return ClassDistance().fit(Z[valid], y[valid]).calibrate(held_out)
 
 
 def _training_summary(tables: Sequence[Any], frames: TrainingFrames) -> dict[str, Any]:

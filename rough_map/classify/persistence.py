@@ -77,6 +77,7 @@ __all__ = [
 #: file is refused.
 TRUSTED_TYPES: tuple[str, ...] = (
     "rough_map.classify.model.TerrainModel",
+    "rough_map.classify.novelty.ClassDistance",
     "rough_map.classify.spectral.SpectralFeatures",
     "rough_map.filter.defects.IsolatedSpikes",
     "rough_map.filter.path_filter.PathFilter",
@@ -152,6 +153,7 @@ def build_card(model: Any, model_file: Path, extra: dict[str, Any] | None = None
             "waviness_jitter": float(model.waviness_jitter),
         },
         "filter": _filter_card(model),
+        "novelty": None if getattr(model, "novelty_", None) is None else model.novelty_.summary(),
         "roughness_levels": {
             "levels": list(model.level_names_),
             "thresholds_m3_per_rad": list(model.level_thresholds_),

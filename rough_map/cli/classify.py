@@ -15,6 +15,8 @@ import argparse
 from collections import Counter
 from pathlib import Path
 
+import numpy as np
+
 from rough_map.cli._common import (
     add_jobs_arg,
     add_mode_arg,
@@ -90,11 +92,17 @@ def run(args: argparse.Namespace) -> int:
                 "filtered_class_frames": dict(counts),
                 "level_frames": dict(levels),
                 "defect_frames": int(pred.defect.sum()),
+                "novel_frames": int(pred.novel.sum()),
             }
         )
         return 0
     rows = [[c, str(counts.get(str(c), 0))] for c in pred.classes]
     print(table(rows, ["filtered class", "frames"]))
+    if np.isfinite(pred.novelty).any():
+        print(
+            f"{int(pred.novel.sum())} of {int(np.isfinite(pred.novelty).sum())} frames look "
+            "unlike every class the model was trained on (novelty above 1 in the table)"
+        )
     if levels:
         print()
         print(

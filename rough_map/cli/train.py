@@ -27,6 +27,14 @@ the shipped model was fitted on data with ``b6de8ab0...``, this version's simula
 longer than 50 m built in 6 m tiles) and feature extraction (cell means at any density, the
 noise floor of issue 12). Any later change to the simulator or the feature extraction gives
 other traverses, another hash and another model.
+
+``train`` also fits the model's novelty score (:mod:`rough_map.classify.novelty`). The
+shipped model was trained before the score existed, so it got its score from the same six
+traverses simulated again and read with this version's feature extraction (sha256
+``66459d40...``, the card's ``novelty`` entry), its classifier left as it was::
+
+    for s in 101 102 103 104 105 106; do rough-map features sim/train-$s --out feat-$s.csv; done
+    python tools/fit_novelty.py models/default feat-101.csv feat-102.csv feat-103.csv feat-104.csv feat-105.csv feat-106.csv
 """  # noqa: E501
 
 from __future__ import annotations

@@ -17,7 +17,9 @@ __all__ = ["LABEL_COLUMNS", "write_labels"]
 
 #: Columns of ``labels.csv``, in order: frame index, time (s), position x, y (m, world),
 #: distance along the path (m), valid patch, true label, raw class and its probability,
-#: filtered class and its probability, roughness level, isolated defect, and the roughness
+#: filtered class and its probability, roughness level, isolated defect, the novelty score
+#: and its flag (ground unlike every trained class, :attr:`TerrainPrediction.novelty`; empty
+#: without a valid patch or a score), and the roughness
 #: smoothed along the path (R in m³/rad, w, standard deviations of ln R and w; empty when
 #: the features were not smoothed).
 LABEL_COLUMNS = (
@@ -34,6 +36,8 @@ LABEL_COLUMNS = (
     "filtered_p",
     "level",
     "defect",
+    "novelty",
+    "novel",
     *SMOOTH_COLUMNS,
 )
 
@@ -62,6 +66,7 @@ def write_labels(features: FeatureTable, prediction: TerrainPrediction, path: Pa
     filt_p = pred.filtered_confidence
     defect = pred.defect if pred.defect is not None else np.zeros(len(f), dtype=bool)
     nan = np.full(len(f), np.nan)
+    novelty = np.asarray(pred.novelty if pred.novelty is not None else nan, dtype=float)
     smoothed = [np.asarray(f.columns.get(c, nan), dtype=float) for c in SMOOTH_COLUMNS]
     # a column at a time: the same text as formatting each value (tolist gives the same
     # floats; a str column's values are written as they are)
@@ -80,6 +85,8 @@ def write_labels(features: FeatureTable, prediction: TerrainPrediction, path: Pa
         ["" if not math.isfinite(v) else f"{v:.4f}" for v in np.asarray(filt_p).tolist()],
         list(pred.level),
         ["true" if v else "false" for v in np.asarray(defect).tolist()],
+        ["" if not math.isfinite(v) else f"{v:.3f}" for v in novelty.tolist()],
+        ["" if not math.isfinite(v) else ("true" if v > 1 else "false") for v in novelty.tolist()],
         *(["" if not math.isfinite(v) else f"{v:.6g}" for v in col.tolist()] for col in smoothed),
     ]
     with atomic_output(path) as tmp, open(tmp, "w", newline="") as fh:

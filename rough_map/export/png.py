@@ -136,9 +136,10 @@ def layer_views(
 
 
 def is_share_layer(grid: GridMap, layer: str) -> bool:
-    """Whether ``layer`` holds a share on 0–1: a class probability or a confidence."""
+    """Whether ``layer`` holds a share on 0–1: a class probability, a confidence or the
+    share of novel patches."""
     return is_probability_layer(grid, layer) or (
-        layer.removeprefix("far_") == "confidence" and grid.info(layer).units == "1"
+        layer.removeprefix("far_") in ("confidence", "novel") and grid.info(layer).units == "1"
     )
 
 

@@ -17,6 +17,8 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from rough_map._files import atomic_output
 from rough_map.errors import RoughMapError
 from rough_map.export.geotiff import value_layers
@@ -60,7 +62,10 @@ _FAR_SUMMARY = ("near_area_m2", "near_far_area_m2", "area_ratio", "far_accuracy_
 _DATA_FILES = (
     ("features.csv", "per-frame features: pose, R, w, σ, validity, label"),
     ("features.csv.json", "what features.csv holds: columns, units, wavenumbers, source"),
-    ("labels.csv", "per-frame raw and filtered class with confidence, level, defect flag"),
+    (
+        "labels.csv",
+        "per-frame raw and filtered class with confidence, level, defect flag and novelty",
+    ),
     ("map_path.geojson", "the path and the frames (R, w, ISO class, class, level) for GIS"),
     ("evaluation.json", "the evaluation: confusion matrices and scores, raw and filtered"),
 )
@@ -143,6 +148,15 @@ def _summary(result: AnalysisResult) -> list[str]:
     mode = getattr(result.prediction, "mode", None)
     if result.model is not None and mode:
         rows.append(["path filter", str(mode)])
+    novelty = None if result.prediction is None else result.prediction.novelty
+    if novelty is not None and np.isfinite(novelty).any():
+        n_novel = int(np.sum(np.asarray(novelty)[np.isfinite(novelty)] > 1))
+        rows.append(
+            [
+                "frames unlike every trained class (novelty above 1)",
+                f"{n_novel} of {int(np.isfinite(novelty).sum())}: their class is the nearest one",
+            ]
+        )
     far = result.far_report or {}
     if far:
         rows += [

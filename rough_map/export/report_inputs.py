@@ -72,6 +72,9 @@ class PredictionLike(Protocol):
     def defect(self) -> np.ndarray | None: ...
 
     @property
+    def novelty(self) -> np.ndarray | None: ...
+
+    @property
     def mode(self) -> str: ...
 
 

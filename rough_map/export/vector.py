@@ -89,6 +89,9 @@ def path_feature_collection(
             props["level"] = str(prediction.level[i])
             defect = prediction.defect
             props["defect"] = bool(defect[i]) if defect is not None else False
+            novelty = None if prediction.novelty is None else _number(prediction.novelty[i], 3)
+            props["novelty"] = novelty
+            props["novel"] = None if novelty is None else bool(novelty > 1)
         frames.append({"type": "Feature", "id": i + 1, "properties": props,
                        "geometry": {"type": "Point", "coordinates": coords[i]}})  # fmt: skip
     line = [coords[i] for i in range(len(features)) if ok[i]]

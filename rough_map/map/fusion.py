@@ -59,6 +59,7 @@ def fuse_patch(
     sigma_w: float = math.nan,
     probs: ArrayLike | None = None,
     level: float = math.nan,
+    novelty: float = math.nan,
     spec: PatchSpec | None = None,
     grow: bool = True,
     margin: float = DEFAULT_MARGIN,
@@ -86,6 +87,9 @@ def fuse_patch(
         Class probabilities of the patch, in the order of ``grid.attrs["class_names"]``.
     level : float
         Roughness level index of the patch (NaN: none).
+    novelty : float
+        Novelty score of the patch's class (dimensionless; above 1: unlike every trained
+        class; NaN: none), counted into ``novel`` with the class.
     spec : PatchSpec, optional
         Patch geometry (default: :class:`~rough_map.patch.PatchSpec`'s).
     grow : bool
@@ -125,12 +129,14 @@ def fuse_patch(
         sigma_w=sigma_w,
         probs=probs,
         level=level,
+        novelty=novelty,
         count=count,
     )
     for name, value in sums:
         if name.startswith("votes_"):
             add_vote_layers(grid)
-        grid[name][rows, cols] += value
+        if name in grid:  # as GridMap.add_at: a map made before a layer existed lacks it
+            grid[name][rows, cols] += value
     if math.isfinite(t):
         grid["last_seen"][rows, cols] = np.fmax(grid["last_seen"][rows, cols], t)
     if update:
@@ -149,6 +155,7 @@ def patch_sums(
     sigma_w: float = math.nan,
     probs: ArrayLike | None = None,
     level: float = math.nan,
+    novelty: float = math.nan,
     count: bool = True,
 ) -> list[tuple[str, float]]:
     """What one patch adds to each cell it covers (:func:`fuse_patch`'s observation):
@@ -182,6 +189,8 @@ def patch_sums(
         p = _normalised(len(class_names), np.asarray(probs, dtype=float).reshape(1, -1), 1)
         if np.all(np.isfinite(p)):
             sums += [(f"evidence_{c}", p[0, k]) for k, c in enumerate(class_names)]
+            if math.isfinite(novelty):
+                sums += [("n_novelty", 1.0), ("sum_novel", float(novelty > 1.0))]
     if math.isfinite(level):
         k = int(round(level))
         if not (0 <= k < len(level_names)) or k != level:
@@ -340,6 +349,7 @@ def fuse_traverse(
     prior: float = 1.0,
     margin: float = 1.0,
     frame_id: str = "map",
+    novelty: ArrayLike | None = None,
 ) -> GridMap:
     """Map of a traverse: every valid frame's patch fused into the near-field layers.
 
@@ -373,6 +383,9 @@ def fuse_traverse(
         Room in m around the patches of the traverse.
     frame_id : str
         ROS frame name of the map.
+    novelty : array_like, shape (n_frames,), optional
+        Novelty score per frame (NaN: none; :attr:`rough_map.classify.TerrainPrediction.
+        novelty`), fused with the classes into ``novel``.
 
     Returns
     -------
@@ -409,6 +422,9 @@ def fuse_traverse(
         if frame_levels.shape != (n,):
             raise InputError(f"levels must have shape ({n},), got {frame_levels.shape}")
     get = {k: np.asarray(cols[k], dtype=float) for k in ("t", "R", "w", "sigma_R", "sigma_w")}
+    get["novelty"] = np.full(n, np.nan) if novelty is None else np.asarray(novelty, dtype=float)
+    if get["novelty"].shape != (n,):
+        raise InputError(f"novelty must have shape ({n},), got {get['novelty'].shape}")
     for i in np.flatnonzero(valid):
         fuse_patch(
             grid,
@@ -422,6 +438,7 @@ def fuse_traverse(
             sigma_w=get["sigma_w"][i],
             probs=None if probs is None else probs[i],
             level=math.nan if frame_levels is None else frame_levels[i],
+            novelty=get["novelty"][i],
             spec=spec,
             grow=False,
             update=False,

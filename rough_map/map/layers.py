@@ -26,6 +26,11 @@ Layers of the near field (group ``"near"``, no prefix)
     Class probabilities and their argmax index (NaN unknown), fused by a Dirichlet update:
     each observation adds ``weight * p`` to the cell's evidence (pseudo-counts), and
     ``p_c = (prior / K + evidence_c) / (prior + sum(evidence))``.
+``novel``
+    Share of the cell's classified patches whose ground is unlike every class the model was
+    trained on (novelty above 1, :attr:`rough_map.classify.TerrainPrediction.novelty`), 0 to
+    1; NaN where no patch had a novelty score. Where it is high, ``class`` is only the
+    nearest class.
 ``count``, ``last_seen``
     Number of patches fused into the cell (0 never seen) and the latest time, s.
 
@@ -39,7 +44,7 @@ class over the predictions, without the prior); where it is below
 
 Internal layers (``kind="internal"``, not exported): ``n_roughness``, ``sum_lnR``,
 ``sum_lnR2``, ``n_sigma``, ``sum_rel_var_R``, ``sum_w``, ``sum_w2``, ``sum_var_w``,
-``[far_]evidence_<class>``, ``votes_<level>``.
+``[far_]evidence_<class>``, ``votes_<level>``, ``n_novelty``, ``sum_novel``.
 """
 
 from __future__ import annotations
@@ -160,8 +165,26 @@ def init_layers(
     return grid
 
 
+#: Layers of the near field's novelty (with its classes): name -> (units, description, fill,
+#: kind).
+_NOVELTY_LAYERS: dict[str, tuple[str, str, float, LayerKind]] = {
+    "novel": (
+        "1",
+        "share of the classified patches unlike every trained class (novelty above 1)",
+        math.nan,
+        "value",
+    ),
+    "n_novelty": ("1", "patches with a novelty score", 0.0, "internal"),
+    "sum_novel": ("1", "patches whose novelty is above 1", 0.0, "internal"),
+}
+
+
 def _class_layers(grid: GridMap, prefix: str, names: tuple[str, ...]) -> None:
     where = "far-field prediction" if prefix else "near field"
+    if not prefix:
+        for name, (units, desc, fill, kind) in _NOVELTY_LAYERS.items():
+            if name not in grid:
+                grid.add_layer(name, units=units, description=desc, fill=fill, kind=kind)
     for c in names:
         if f"{prefix}p_{c}" not in grid:
             grid.add_layer(
@@ -199,7 +222,7 @@ def update_estimates(grid: GridMap, window: tuple[slice, slice] | None = None) -
 
     Reads ``n_roughness``, ``sum_*``, ``[far_]evidence_<class>`` and ``votes_<level>``;
     writes ``R``, ``w``, ``sigma_R``, ``sigma_w``, ``level`` (only where votes exist),
-    ``[far_]p_<class>`` and ``[far_]class``.
+    ``[far_]p_<class>``, ``[far_]class`` and ``novel``.
 
     Parameters
     ----------
@@ -221,6 +244,10 @@ def update_estimates(grid: GridMap, window: tuple[slice, slice] | None = None) -
     for prefix in GROUPS.values():
         if names and f"{prefix}evidence_{names[0]}" in grid:
             _update_classes(grid, prefix, names, win)
+    if "n_novelty" in grid:
+        n = grid["n_novelty"][win]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            grid["novel"][win] = np.where(n > 0, grid["sum_novel"][win] / n, np.nan)
     return grid
 
 
