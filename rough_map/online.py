@@ -51,6 +51,7 @@ from rough_map.filter import discrete_bayes
 from rough_map.geometry import pose_matrix
 from rough_map.map.footprints import patch_corners
 from rough_map.map.grid import GridMap
+from rough_map.map.layers import OBSERVED
 from rough_map.map.tiles import TiledMap
 from rough_map.patch import Extraction
 from rough_map.stereo import stereo_to_cloud
@@ -497,13 +498,9 @@ def _per_frame(roughness: Mapping[str, ArrayLike] | None, n: int) -> dict[str, N
 def _observation(
     row: dict[str, Any], probs: NDArray[np.float64] | None, level: float, novelty: float
 ) -> dict:
-    return {
-        "t": float(row.get("t", math.nan)),
-        "R": float(row.get("R", math.nan)),
-        "w": float(row.get("w", math.nan)),
-        "sigma_R": float(row.get("sigma_R", math.nan)),
-        "sigma_w": float(row.get("sigma_w", math.nan)),
-        "probs": probs,
-        "level": level,
-        "novelty": novelty,
-    }
+    """A frame's observation for the map (:func:`rough_map.map.fuse_patch`): the fields of
+    :data:`rough_map.map.layers.OBSERVED` from its features row, its novelty, classes and
+    level."""
+    obs: dict[str, Any] = {k: float(row.get(k, math.nan)) for k in OBSERVED}
+    obs.update(t=float(row.get("t", math.nan)), probs=probs, level=level, novelty=novelty)
+    return obs

@@ -122,6 +122,34 @@ def test_log_mean_R_mean_w_and_their_sigmas():
         assert np.all(np.isnan(g[name][never])), name
 
 
+def test_the_band_rms_layer_is_the_log_mean_of_the_patches_band_rms():
+    """roughness_rms, the layer added as one entry of FUSED_LAYERS: in cells two patches
+    cover, the geometric mean of their band rms (m); a patch without one adds nothing."""
+    g = GridMap(GridGeometry.covering((-1, -2, 4, 2), 0.1))
+    init_layers(g, ())
+    fuse_patch(g, 0.0, 0.0, 0.0, R=1e-5, w=2.0, band_rms=0.001)
+    fuse_patch(g, 0.3, 0.0, 0.0, R=1e-3, w=3.0, band_rms=0.004)
+    fuse_patch(g, 0.3, 0.0, 0.0, R=1e-3, w=3.0, band_rms=math.nan)
+    both = (g["n_roughness_rms"] == 2) & (g["count"] == 3)
+    assert both.sum() > 30
+    np.testing.assert_allclose(g["roughness_rms"][both], 0.002)
+    assert g.info("roughness_rms").units == "m" and g.info("n_roughness_rms").kind == "internal"
+    assert np.isnan(g["roughness_rms"][g["count"] == 0]).all()
+    with pytest.raises(InputError, match=r"unknown observation fields \['rms'\]"):
+        fuse_patch(g, 0.0, 0.0, 0.0, rms=0.001)
+
+
+def test_a_traverse_map_fuses_the_band_rms_column():
+    ft, _, _ = drive()
+    rms = np.random.default_rng(3).uniform(0.001, 0.01, len(ft))
+    ft = FeatureTable({**ft.columns, "band_rms": rms}, ft.omega, ft.log_psd, ft.name)
+    g = fuse_traverse(ft, spec=PatchSpec())
+    seen = g["count"] > 0
+    lo, hi = rms[ft.valid].min(), rms[ft.valid].max()
+    values = g["roughness_rms"][seen]
+    assert np.isfinite(values).all() and values.min() >= lo * 0.999 and values.max() <= hi * 1.001
+
+
 def test_dirichlet_class_fusion():
     g = GridMap(GridGeometry.covering((-1, -2, 4, 2), 0.1))
     init_layers(g, NAMES, prior=1.5)

@@ -209,7 +209,6 @@ def test_the_novel_layer_is_the_share_of_novel_patches() -> None:
     p = np.array([0.7, 0.3])
     for novelty in (0.5, 2.0, 3.0, math.nan):
         fuse_patch(grid, 0.0, 0.0, 0.0, R=1e-4, w=-2.0, probs=p, novelty=novelty, spec=SPEC)
-    fuse_patch(grid, 0.0, 0.0, 0.0, R=1e-4, w=-2.0, novelty=5.0, spec=SPEC)  # no class: none
     seen = grid["count"] > 0
     assert seen.any()
     assert np.allclose(grid["novel"][seen], 2 / 3)

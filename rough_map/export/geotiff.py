@@ -5,7 +5,8 @@ map becomes (profiles in :mod:`rough_map.export.profiles`):
 
 ``<name>.tif``
     float32, one band per value layer, described by the layer name (``R``, ``w``,
-    ``sigma_R``, ``sigma_w``, ``level``, ``count``, ``last_seen``, ``p_<class>``, then the
+    ``sigma_R``, ``sigma_w``, ``level``, ``count``, ``last_seen``, ``roughness_rms``,
+    ``novel``, ``p_<class>``, then the
     far-field ``far_count``, ``far_p_<class>``...), with GDAL unit types and band tags
     ``units``, ``long_name`` and ``layer``. Nodata: NaN.
 ``<name>_class.tif``, ``<name>_far_class.tif``

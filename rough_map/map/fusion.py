@@ -27,10 +27,13 @@ from rough_map.map.grid import DEFAULT_MARGIN, GridMap
 from rough_map.map.grid_geometry import GridGeometry
 from rough_map.map.layers import (
     LEVEL_NAMES,
+    OBSERVED,
     apply_levels,
     group_prefix,
     init_layers,
     level_indices,
+    normalised_probs,
+    patch_sums,
     update_estimates,
 )
 from rough_map.patch import PatchSpec
@@ -42,7 +45,6 @@ __all__ = [
     "fuse_patch",
     "fuse_traverse",
     "log_fused",
-    "patch_sums",
 ]
 
 
@@ -53,18 +55,14 @@ def fuse_patch(
     yaw: float,
     *,
     t: float = math.nan,
-    R: float = math.nan,
-    w: float = math.nan,
-    sigma_R: float = math.nan,
-    sigma_w: float = math.nan,
     probs: ArrayLike | None = None,
     level: float = math.nan,
-    novelty: float = math.nan,
     spec: PatchSpec | None = None,
     grow: bool = True,
     margin: float = DEFAULT_MARGIN,
     update: bool = True,
     count: bool = True,
+    **observed: float,
 ) -> NDArray[np.int64]:
     """Fuse the patch seen from one vehicle pose into the near-field layers, in place.
 
@@ -78,18 +76,10 @@ def fuse_patch(
         Vehicle heading, rad (0 = +x, counter-clockwise).
     t : float
         Time of the frame, s (NaN: unknown, ``last_seen`` unchanged).
-    R, sigma_R : float
-        Overall energy of the patch and its standard deviation, m^3/rad. R not finite
-        or not positive: no roughness from this patch.
-    w, sigma_w : float
-        Waviness and its standard deviation, dimensionless.
     probs : array_like, shape (K,), optional
         Class probabilities of the patch, in the order of ``grid.attrs["class_names"]``.
     level : float
         Roughness level index of the patch (NaN: none).
-    novelty : float
-        Novelty score of the patch's class (dimensionless; above 1: unlike every trained
-        class; NaN: none), counted into ``novel`` with the class.
     spec : PatchSpec, optional
         Patch geometry (default: :class:`~rough_map.patch.PatchSpec`'s).
     grow : bool
@@ -102,11 +92,22 @@ def fuse_patch(
     count : bool
         Count the patch in ``count`` (False: a second fusion of a patch counted already,
         e.g. its smoothed class once the whole path is known).
+    **observed : float
+        The patch's observation, fields of :data:`rough_map.map.layers.OBSERVED` (NaN or
+        left out: not observed): ``R`` and ``sigma_R`` (m^3/rad; R not finite or not
+        positive: no roughness from this patch), ``w``, ``sigma_w``, ``band_rms`` (m),
+        ``novelty``.
 
     Returns
     -------
     ndarray, shape (N, 2)
         ``(row, col)`` of the cells the patch covered (after any growth).
+
+    Raises
+    ------
+    InputError
+        A non-finite pose, or an observation :func:`~rough_map.map.layers.patch_sums`
+        refuses.
     """
     spec = spec or PatchSpec()
     if not all(math.isfinite(v) for v in (x, y, yaw)):
@@ -123,14 +124,10 @@ def fuse_patch(
     sums = patch_sums(
         grid.attrs.get("class_names", ()),
         grid.attrs.get("level_names", ()),
-        R=R,
-        w=w,
-        sigma_R=sigma_R,
-        sigma_w=sigma_w,
         probs=probs,
         level=level,
-        novelty=novelty,
         count=count,
+        **observed,
     )
     for name, value in sums:
         if name.startswith("votes_"):
@@ -142,63 +139,6 @@ def fuse_patch(
     if update:
         update_estimates(grid, _window(cells))
     return cells
-
-
-def patch_sums(
-    class_names: Sequence[str],
-    level_names: Sequence[str],
-    *,
-    t: float = math.nan,
-    R: float = math.nan,
-    w: float = math.nan,
-    sigma_R: float = math.nan,
-    sigma_w: float = math.nan,
-    probs: ArrayLike | None = None,
-    level: float = math.nan,
-    novelty: float = math.nan,
-    count: bool = True,
-) -> list[tuple[str, float]]:
-    """What one patch adds to each cell it covers (:func:`fuse_patch`'s observation):
-    ``(layer, value)`` pairs; ``t`` (s) goes into ``last_seen`` by a maximum, not here.
-
-    Raises
-    ------
-    InputError
-        ``probs`` without ``class_names``, or not one probability per class; a ``level``
-        that is not an index of ``level_names``.
-    """
-    sums: list[tuple[str, float]] = [("count", 1.0)] if count else []
-    if math.isfinite(R) and R > 0 and math.isfinite(w):
-        ln_r = math.log(R)
-        sums += [
-            ("n_roughness", 1.0),
-            ("sum_lnR", ln_r),
-            ("sum_lnR2", ln_r * ln_r),
-            ("sum_w", w),
-            ("sum_w2", w * w),
-        ]
-        if math.isfinite(sigma_R) and math.isfinite(sigma_w):
-            sums += [
-                ("n_sigma", 1.0),
-                ("sum_rel_var_R", (sigma_R / R) ** 2),
-                ("sum_var_w", sigma_w**2),
-            ]
-    if probs is not None:
-        if not class_names:
-            raise InputError("probs given but the map has no class_names; call init_layers")
-        p = _normalised(len(class_names), np.asarray(probs, dtype=float).reshape(1, -1), 1)
-        if np.all(np.isfinite(p)):
-            sums += [(f"evidence_{c}", p[0, k]) for k, c in enumerate(class_names)]
-            if math.isfinite(novelty):
-                sums += [("n_novelty", 1.0), ("sum_novel", float(novelty > 1.0))]
-    if math.isfinite(level):
-        k = int(round(level))
-        if not (0 <= k < len(level_names)) or k != level:
-            raise InputError(
-                f"level must be an index 0..{len(level_names) - 1} or NaN, got {level!r}"
-            )
-        sums.append((f"votes_{level_names[k]}", 1.0))
-    return sums
 
 
 def fuse_cell_probabilities(
@@ -287,20 +227,7 @@ def _check_cells(grid: GridMap, cells: ArrayLike) -> NDArray[np.int64]:
 
 
 def _check_probs(grid: GridMap, p: NDArray, n: int) -> NDArray:
-    return _normalised(len(grid.attrs.get("class_names", ())), p, n)
-
-
-def _normalised(k: int, p: NDArray, n: int) -> NDArray:
-    """Probability rows (one or ``n`` of ``k`` classes) scaled to sum 1 (NaN: a row of 0)."""
-    if p.ndim == 1:
-        p = p.reshape(1, -1)
-    if p.ndim != 2 or p.shape[1] != k or p.shape[0] not in (1, n):
-        raise InputError(f"probs must have shape ({n}, {k}) or ({k},), got {p.shape}")
-    if np.any(p < 0):
-        raise InputError("probabilities must be >= 0")
-    total = p.sum(axis=1, keepdims=True)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(total > 0, p / total, np.nan)
+    return normalised_probs(len(grid.attrs.get("class_names", ())), p, n)
 
 
 def _add_evidence(
@@ -421,27 +348,27 @@ def fuse_traverse(
         frame_levels = level_indices(levels, grid)
         if frame_levels.shape != (n,):
             raise InputError(f"levels must have shape ({n},), got {frame_levels.shape}")
-    get = {k: np.asarray(cols[k], dtype=float) for k in ("t", "R", "w", "sigma_R", "sigma_w")}
-    get["novelty"] = np.full(n, np.nan) if novelty is None else np.asarray(novelty, dtype=float)
-    if get["novelty"].shape != (n,):
-        raise InputError(f"novelty must have shape ({n},), got {get['novelty'].shape}")
+    # the observation of each frame: the features columns of the fields the layers read
+    get = {k: np.asarray(cols[k], dtype=float) for k in OBSERVED if k in cols}
+    if novelty is not None:
+        get["novelty"] = np.asarray(novelty, dtype=float)
+        if get["novelty"].shape != (n,):
+            raise InputError(f"novelty must have shape ({n},), got {get['novelty'].shape}")
+    t = np.asarray(cols["t"], dtype=float)
     for i in np.flatnonzero(valid):
+        observed: dict[str, Any] = {k: float(v[i]) for k, v in get.items()}
         fuse_patch(
             grid,
             x[i],
             y[i],
             yaw[i],
-            t=get["t"][i],
-            R=get["R"][i],
-            w=get["w"][i],
-            sigma_R=get["sigma_R"][i],
-            sigma_w=get["sigma_w"][i],
+            t=t[i],
             probs=None if probs is None else probs[i],
             level=math.nan if frame_levels is None else frame_levels[i],
-            novelty=get["novelty"][i],
             spec=spec,
             grow=False,
             update=False,
+            **observed,
         )
     update_estimates(grid)
     if callable(levels):

@@ -33,10 +33,10 @@ from rough_map._files import PathLike, clean_dead_temp_dirs, write_error
 from rough_map.config import Crs
 from rough_map.errors import FileFormatError, InputError
 from rough_map.map.footprints import lattice_patch_box, patch_bounds
-from rough_map.map.fusion import add_vote_layers, patch_sums
+from rough_map.map.fusion import add_vote_layers
 from rough_map.map.grid import GridMap
 from rough_map.map.grid_geometry import GridGeometry
-from rough_map.map.layers import LEVEL_NAMES, init_layers, update_estimates
+from rough_map.map.layers import LEVEL_NAMES, init_layers, patch_sums, update_estimates
 from rough_map.map.state import (
     HEIGHT_LAYERS,
     StateTile,
@@ -244,9 +244,9 @@ class TiledMap:
     def fuse_patch(
         self, x: float, y: float, yaw: float, *, keep_box: bool = False, **observation: Any
     ) -> int:
-        """Fuse one frame's patch (as :func:`rough_map.map.fusion.fuse_patch`: ``t``, ``R``,
-        ``w``, ``sigma_R``, ``sigma_w``, ``probs``, ``level``, ``count``) into the tiles it
-        covers, each cell getting the patch's sums (:func:`~rough_map.map.fusion.patch_sums`);
+        """Fuse one frame's patch (as :func:`rough_map.map.fusion.fuse_patch`: ``t``,
+        ``probs``, ``level``, ``count`` and the observed fields) into the tiles it
+        covers, each cell getting the patch's sums (:func:`~rough_map.map.layers.patch_sums`);
         returns how many cells it covered. ``keep_box``: keep this pose's cells for the next
         fusion at it, which takes them (a traverse's classes come in a second pass)."""
         if not all(math.isfinite(v) for v in (x, y, yaw)):
