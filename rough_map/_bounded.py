@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import os
+import reprlib
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +34,7 @@ __all__ = [
     "MAX_INT_DIGITS",
     "MAX_NODES",
     "MAX_YAML_BYTES",
+    "brief",
     "check_tree",
     "clip",
     "parse_document",
@@ -40,6 +42,7 @@ __all__ = [
     "parse_yaml",
     "read_document_text",
     "short",
+    "shorten",
 ]
 
 MAX_DOCUMENT_BYTES = 64 * 1024 * 1024
@@ -66,8 +69,31 @@ class _Limit(Exception):
 
 
 def short(value: object, limit: int = 60) -> str:
-    """``repr(value)`` cut to ``limit`` characters: safe to quote in a one-line message."""
-    return clip(repr(value), limit)
+    """``repr(value)`` cut to ``limit`` characters: safe to quote in a one-line message (a
+    long string is cut before its repr is taken, a large container shown a few items and
+    levels deep, however large it is)."""
+    if isinstance(value, str | bytes) and len(value) > limit:
+        value = value[: limit + 1]
+    big = isinstance(value, list | tuple | dict | set | frozenset) and len(value) > 8
+    return clip(reprlib.repr(value) if big else repr(value), limit)
+
+
+def brief(err: BaseException, limit: int = 80) -> str:
+    """``Type: 'message'`` of an exception, the message quoted and cut (never raw bytes)."""
+    text = repr(str(err))
+    if len(text) > limit:
+        text = text[: limit - 3] + "..."
+    return f"{type(err).__name__}: {text}"
+
+
+def shorten(text: str, limit: int) -> str:
+    """``text`` cut to ``limit`` characters with "…" in the middle (head two thirds), so
+    that a message keeps both its start and the file or field it ends on."""
+    if len(text) <= limit:
+        return text
+    head = (limit - 1) * 2 // 3
+    tail = limit - 1 - head
+    return text[:head] + "…" + (text[-tail:] if tail else "")
 
 
 def clip(text: object, limit: int = 100) -> str:

@@ -17,7 +17,7 @@ whatever order the work ran.
 A batch is resumable: a traverse whose folder holds a ``batch.json`` with the same
 fingerprint (the traverse file's and the model's SHA-256, the settings, the rough_map
 version) is not mapped again. Each traverse's folder is written as a set: into a hidden
-staging folder swapped in whole when complete (:func:`rough_map._output_set.output_set`),
+staging folder swapped in whole when complete (:func:`rough_map._files.output_set`),
 so a killed run leaves either the old folder or the new one, never half of one; a finished
 traverse stays done. The fused map at the top is a set too: the whole of ``OUT`` is staged
 (the traverses' folders and the user's files carried over by hard links) and swapped in.
@@ -42,9 +42,10 @@ from rough_map._files import (
     atomic_output,
     clean_dead_temp_dirs,
     clean_stale,
+    output_set,
+    recover,
     write_error,
 )
-from rough_map._output_set import output_set, recover
 from rough_map.classify import sha256_file
 from rough_map.errors import InputError
 from rough_map.export import export_map
@@ -176,7 +177,7 @@ def map_traverse_files(job: BatchJob) -> dict[str, bytes]:
 
 def _write_set(folder: Path, files: dict[str, bytes]) -> None:
     """Write a traverse's files as a set: staged beside ``folder`` and swapped in whole
-    (:func:`rough_map._output_set.output_set`; the folder is all the batch's)."""
+    (:func:`rough_map._files.output_set`; the folder is all the batch's)."""
     for rel in files:
         if ".." in Path(rel).parts or Path(rel).is_absolute():
             raise InputError(f"refusing to write {rel!r} outside {folder}")
@@ -400,7 +401,7 @@ def _on_cluster(
 
 def _write_fused(fused: Any, out: Path, png: bool, names: list[str]) -> dict[str, Path]:
     """The fused map's files at the top of ``out``, with ``batch.json``: the whole folder
-    staged and swapped in as a set (:func:`rough_map._output_set.output_set`), the
+    staged and swapped in as a set (:func:`rough_map._files.output_set`), the
     traverses' folders (already in place) and the user's files carried over."""
     marker = {
         "traverses": names,

@@ -169,6 +169,26 @@ class Crs(_Model):
             "+x_0=0 +y_0=0 +ellps=WGS84 +units=m +no_defs"
         )
 
+    def rasterio(self) -> Any:
+        """This CRS as a :class:`rasterio.crs.CRS` (the one conversion every writer and
+        reader uses): the EPSG code; for a local frame with a geodetic origin the transverse
+        Mercator of :meth:`proj_string`; without origin the engineering CRS
+        :data:`LOCAL_WKT` (metres). A ``rasterio.errors.CRSError`` for a code GDAL does
+        not know."""
+        from rasterio.crs import CRS
+
+        if self.epsg is not None:
+            return CRS.from_epsg(self.epsg)
+        proj = self.proj_string()
+        return CRS.from_wkt(LOCAL_WKT) if proj is None else CRS.from_proj4(proj)
+
+
+#: WKT of the engineering CRS of a local frame without geodetic origin (x east, y north, m).
+LOCAL_WKT = (
+    'LOCAL_CS["rough_map local frame (x east, y north)",LOCAL_DATUM["rough_map local",0],'
+    'UNIT["metre",1],AXIS["Easting",EAST],AXIS["Northing",NORTH]]'
+)
+
 
 def _first_error(err: Exception) -> str:
     if isinstance(err, ValidationError):

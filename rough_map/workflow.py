@@ -18,8 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from rough_map._files import PathLike
-from rough_map._output_set import output_set
+from rough_map._files import PathLike, output_set
 from rough_map.classify import (
     RoughnessLevels,
     TerrainModel,
@@ -456,7 +455,7 @@ def write_outputs(
     (:meth:`rough_map.map.tiles.TiledMap.add_saved`).
 
     With ``as_set`` (the default) they are written as a set
-    (:func:`rough_map._output_set.output_set`): in a staging folder beside ``out_dir``
+    (:func:`rough_map._files.output_set`): in a staging folder beside ``out_dir``
     swapped in whole when all are written, so that ``out_dir`` holds either the old outputs
     or the new ones, never a mix; the user's own files in ``out_dir`` are kept, outputs of
     an earlier run that this one does not write (:data:`MAP_OUTPUTS`) are dropped.

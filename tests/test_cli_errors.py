@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rough_map.cli._common import MAX_ERROR_MESSAGE, error_line, printable, shorten
+from rough_map._bounded import shorten
+from rough_map.cli._common import MAX_ERROR_MESSAGE, error_line, printable
 from rough_map.cli.main import failure_line, main
 from rough_map.errors import FileFormatError, SchemaError
 

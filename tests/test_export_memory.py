@@ -63,7 +63,7 @@ def all_at_once(grid: GridMap, path, layer: str | None = None) -> None:
             count=len(bands),
             dtype=dtype,
             nodata=nodata,
-            crs=geotiff.rasterio_crs(grid.crs),
+            crs=grid.crs.rasterio(),
             transform=grid.geometry.transform(),
         ) as ds:
             ds.write(bands)

@@ -1,6 +1,6 @@
 """Faults while writing: full disk, read-only folder, a write failing half way, leftovers.
 
-The outputs of a command are a set (:mod:`rough_map._output_set`): after a failure the old
+The outputs of a command are a set (:func:`rough_map._files.output_set`): after a failure the old
 set is there byte for byte, with no temporary file, and the error is one line naming the
 file. The full-disk and read-only cases mount a small tmpfs / a read-only bind mount (as
 root); they are skipped where mounting is not permitted.
@@ -21,8 +21,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rough_map._files import atomic_output, clean_stale, gdal_errors, is_temp_name, verify_file
-from rough_map._output_set import output_set, recover
+from rough_map._files import (
+    atomic_output,
+    clean_stale,
+    gdal_errors,
+    is_temp_name,
+    output_set,
+    recover,
+    verify_file,
+)
 from rough_map.cli.main import main
 from rough_map.errors import FileFormatError
 
@@ -185,7 +192,7 @@ def test_a_failure_half_way_leaves_the_old_set(
 def test_the_set_is_swapped_whole_and_keeps_the_users_files(
     small_traverse: Path, old_map: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import rough_map._output_set as outset
+    import rough_map._files as outset
 
     out = tmp_path / "out"
     shutil.copytree(old_map, out)

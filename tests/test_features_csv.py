@@ -146,7 +146,7 @@ def test_an_old_pending_commit_does_not_outlive_its_set(tmp_path: Path) -> None:
     import shutil
 
     from rough_map import _files
-    from rough_map._output_set import output_set
+    from rough_map._files import output_set
 
     out = tmp_path / "run"
     out.mkdir()

@@ -74,8 +74,6 @@ def test_the_layers_tag_lists_exactly_the_bands(mapped: Path) -> None:
 def test_the_path_and_frames_are_geojson_in_lon_lat(mapped: Path, small_traverse: Path) -> None:
     from rasterio.warp import transform
 
-    from rough_map.export.geotiff import rasterio_crs
-
     data = json.loads((mapped / "map_path.geojson").read_text())
     assert data["type"] == "FeatureCollection" and "rough_map_crs" not in data
     path, *frames = data["features"]
@@ -86,7 +84,7 @@ def test_the_path_and_frames_are_geojson_in_lon_lat(mapped: Path, small_traverse
     lat = [f["geometry"]["coordinates"][1] for f in frames]
     assert all(-180 <= v <= 180 for v in lon) and all(-90 <= v <= 90 for v in lat)
     # back to the traverse's frame: within a millimetre of the poses
-    x, y = transform("EPSG:4326", rasterio_crs(trav.spec.crs), lon, lat)
+    x, y = transform("EPSG:4326", trav.spec.crs.rasterio(), lon, lat)
     poses = trav.poses()
     np.testing.assert_allclose(x, poses[:, 0], atol=1e-3)
     np.testing.assert_allclose(y, poses[:, 1], atol=1e-3)

@@ -9,10 +9,10 @@ import itertools
 import math
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+from browser import CHECKER, needs_chromium
 
 from rough_map import iso8608
 from rough_map.export.layout import MapPanel, draw_map_panels, drawn_texts
@@ -24,8 +24,6 @@ from rough_map.map import EmptyMapWarning, fuse_traverse
 from rough_map.terrain import SURFACES
 
 CLASS_NAMES = tuple(SURFACES)
-
-CHECKER = Path(__file__).resolve().parents[1] / "tools" / "check_report.py"
 
 
 def _table(x, y, R) -> FeatureTable:
@@ -225,16 +223,7 @@ def test_the_palettes_are_colour_blind_safe(palette, least_lightness):
 # -- in a browser --------------------------------------------------------------------------
 
 
-def _chromium() -> str | None:
-    sys.path.insert(0, str(CHECKER.parent))
-    try:
-        from check_report import find_chromium
-    finally:
-        sys.path.remove(str(CHECKER.parent))
-    return find_chromium()
-
-
-@pytest.mark.skipif(_chromium() is None, reason="no Chromium (apt-get install chromium)")
+@needs_chromium
 def test_every_map_picture_in_a_browser(tmp_path, long_map):
     """Every PNG of a 60 m map, on one page in headless Chromium at a laptop's size."""
     paths = write_pngs(long_map, tmp_path)

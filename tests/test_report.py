@@ -16,27 +16,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from browser import CHECKER, needs_chromium
 
 from rough_map.cli.main import main
 
 ROOT = Path(__file__).resolve().parents[1]
-CHECKER = ROOT / "tools" / "check_report.py"
-
-
-def chromium() -> str | None:
-    sys.path.insert(0, str(CHECKER.parent))
-    try:
-        from check_report import find_chromium
-    finally:
-        sys.path.remove(str(CHECKER.parent))
-    return find_chromium()
-
-
-needs_chromium = pytest.mark.skipif(
-    chromium() is None,
-    reason="no Chromium binary found (chromium, chromium-browser, google-chrome or "
-    "$CHROMIUM); install it with `apt-get install chromium` to check the report in a browser",
-)
 
 
 @pytest.fixture(scope="module")

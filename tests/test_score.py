@@ -326,8 +326,8 @@ def test_every_class_layer_of_the_folder_is_scored(mapped: dict, tmp_path: Path)
 def test_truth_in_a_local_frame(tmp_path: Path) -> None:
     """A truth in rough_map's local engineering CRS lies in the map's local frame; it
     cannot be placed on a georeferenced map."""
+    from rough_map.config import LOCAL_WKT
     from rough_map.evaluation.score_files import resample_truth
-    from rough_map.export.geotiff import LOCAL_WKT
 
     local = CRS.from_wkt(LOCAL_WKT)
     classes = np.zeros((50, 100), dtype=np.int8)

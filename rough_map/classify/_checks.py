@@ -18,11 +18,11 @@ from typing import Any
 
 import numpy as np
 
+from rough_map._bounded import brief
 from rough_map.classify.model import MODES
 from rough_map.classify.spectral import INPUT_SCALARS
 from rough_map.classify.training import CLASSIFIERS
 from rough_map.errors import ModelError
-from rough_map.io._model_archive import brief
 from rough_map.patch import Extraction
 
 __all__ = ["check_loaded_model"]

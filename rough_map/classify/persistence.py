@@ -39,14 +39,14 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from rough_map._bounded import clip
+from rough_map._bounded import brief, clip
 from rough_map._files import atomic_outputs
 from rough_map.classify._checks import check_loaded_model
 from rough_map.classify.model import MODEL_FORMAT, TerrainModel
 from rough_map.classify.spectral import FEATURE_DOC, INPUT_SCALARS
 from rough_map.config import jsonable
 from rough_map.errors import FileFormatError, ModelError
-from rough_map.io._model_archive import MAX_FILE, brief, check_archive
+from rough_map.io._model_archive import MAX_FILE, check_archive
 from rough_map.io.model_files import (
     CARD_FORMAT,
     CARD_SUFFIX,

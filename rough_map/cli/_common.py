@@ -122,18 +122,11 @@ def printable(text: str) -> str:
     )
 
 
-def shorten(text: str, limit: int = MAX_ERROR_MESSAGE) -> str:
-    """``text`` cut to ``limit`` characters with "…" in the middle (head two thirds)."""
-    if len(text) <= limit:
-        return text
-    head = (limit - 1) * 2 // 3
-    tail = limit - 1 - head
-    return text[:head] + "…" + (text[-tail:] if tail else "")
-
-
 def error_line(prog: str, message: str, *, kind: str = "error", suffix: str = "") -> str:
     """The one printable line of a failure, ``PROG: KIND: MESSAGE[SUFFIX]``, where
     ``MESSAGE[SUFFIX]`` is at most :data:`MAX_ERROR_MESSAGE` characters."""
+    from rough_map._bounded import shorten  # on a failure only: _bounded imports yaml
+
     room = max(60, MAX_ERROR_MESSAGE - len(suffix))
     return f"{printable(prog)}: {kind}: " + shorten(printable(message), room) + suffix
 

@@ -106,7 +106,7 @@ IMPORT_OUTPUTS = ("traverse.json", "traverse.yaml", "traverse.yml", "clouds")
 
 
 def run(args: argparse.Namespace) -> int:
-    from rough_map._output_set import output_set
+    from rough_map._files import output_set
     from rough_map.io.rosbag import import_bag
 
     if args.origin is not None and args.crs != "local":

@@ -45,7 +45,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rough_map._output_set import output_set
+    from rough_map._files import output_set
     from rough_map.evaluation import evaluate_model
     from rough_map.export import export_map
     from rough_map.export.report import write_report

@@ -158,7 +158,7 @@ SIMULATE_OUTPUTS = ("traverse.json", "traverse.yaml", "traverse.yml", "clouds", 
 
 
 def run(args: argparse.Namespace) -> int:
-    from rough_map._output_set import output_set
+    from rough_map._files import output_set
     from rough_map.simulate.course import SensorSpec, simulate
 
     if args.bag is not None and args.bag.exists():
@@ -204,7 +204,6 @@ def run(args: argparse.Namespace) -> int:
 def _write_truth_geotiff(folder: Path) -> Path:
     """Write the simulated world's classes as ``folder/world_truth.tif`` (the truth format
     of ``rough-map score``), in the traverse's CRS."""
-    from rough_map.export.geotiff import rasterio_crs
     from rough_map.io.traverse import load_traverse
     from rough_map.io.truth import traverse_truth
     from rough_map.io.truth_raster import TRUTH_GEOTIFF, write_truth_geotiff
@@ -213,4 +212,4 @@ def _write_truth_geotiff(folder: Path) -> Path:
     world = traverse_truth(traverse)
     if world is None:
         raise InputError(f"{folder}: the simulated traverse has no world truth")
-    return write_truth_geotiff(world, folder / TRUTH_GEOTIFF, rasterio_crs(traverse.spec.crs))
+    return write_truth_geotiff(world, folder / TRUTH_GEOTIFF, traverse.spec.crs.rasterio())

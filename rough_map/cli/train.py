@@ -142,7 +142,7 @@ def run(args: argparse.Namespace) -> int:
     sources = open_traverses(args, args.traverses)
     tables = feature_tables(sources, extraction, n_jobs=args.jobs, progress=args.progress)
     if args.save_features is not None:
-        from rough_map._output_set import output_set
+        from rough_map._files import output_set
 
         # a set: staged beside the folder and swapped in whole; other files there are kept
         with output_set(args.save_features) as stage:

@@ -43,7 +43,6 @@ import numpy as np
 
 from rough_map import __version__
 from rough_map._files import atomic_output, gdal_errors
-from rough_map.config import Crs
 from rough_map.errors import InputError
 from rough_map.export.profiles import (
     CLASS_NODATA,
@@ -62,27 +61,10 @@ __all__ = [
     "class_colours",
     "class_layers",
     "overview_factors",
-    "rasterio_crs",
     "value_layers",
     "write_class_geotiff",
     "write_values_geotiff",
 ]
-
-#: WKT of the engineering CRS of a local frame without geodetic origin.
-LOCAL_WKT = (
-    'LOCAL_CS["rough_map local frame (x east, y north)",LOCAL_DATUM["rough_map local",0],'
-    'UNIT["metre",1],AXIS["Easting",EAST],AXIS["Northing",NORTH]]'
-)
-
-
-def rasterio_crs(crs: Crs) -> Any:
-    """The :class:`rasterio.crs.CRS` of a map's CRS (see the module docstring)."""
-    from rasterio.crs import CRS
-
-    if crs.epsg is not None:
-        return CRS.from_epsg(crs.epsg)
-    proj = crs.proj_string()
-    return CRS.from_wkt(LOCAL_WKT) if proj is None else CRS.from_proj4(proj)
 
 
 def value_layers(grid: GridMap) -> list[str]:
@@ -266,7 +248,7 @@ def _write(
                     height=height,
                     count=count,
                     dtype=profile["dtype"],
-                    crs=rasterio_crs(grid.crs),
+                    crs=grid.crs.rasterio(),
                     transform=grid.geometry.transform(),
                     nodata=profile["nodata"],
                     tiled=True,

@@ -29,7 +29,6 @@ from rough_map import iso8608
 from rough_map._files import atomic_output
 from rough_map.classify import TerrainPrediction
 from rough_map.config import Crs
-from rough_map.export.geotiff import rasterio_crs
 from rough_map.features import FeatureTable
 
 __all__ = ["path_feature_collection", "write_path_geojson"]
@@ -45,7 +44,7 @@ def _lon_lat(crs: Crs, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.nda
     ok = np.isfinite(x) & np.isfinite(y)
     lon, lat = np.full(x.shape, np.nan), np.full(y.shape, np.nan)
     if ok.any():
-        lo, la = transform(rasterio_crs(crs), "EPSG:4326", x[ok].tolist(), y[ok].tolist())
+        lo, la = transform(crs.rasterio(), "EPSG:4326", x[ok].tolist(), y[ok].tolist())
         lon[ok], lat[ok] = lo, la
     return lon, lat
 

@@ -19,7 +19,7 @@ import math
 import os
 import signal
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -402,19 +402,31 @@ def start_workers(n_jobs: int) -> None:
     workers = check_jobs(n_jobs)
     if workers == 1:
         return
+
+    start_executor(workers - 1, lambda ex: [ex.submit(_ready) for _ in range(workers - 1)])
+
+
+def start_executor(processes: int, first: Callable[[Any], Iterable[Any]]) -> Any:
+    """loky's reusable executor of ``processes`` workers, started with its first tasks
+    (``first(executor)`` submits them and returns their futures) in
+    :func:`children_ignore_sigint`. A Ctrl-C taken as that block ends cancels the tasks
+    not started and shuts the workers down (and loky's resource tracker) before it goes
+    on."""
     from joblib.externals.loky import get_reusable_executor
 
-    executor = None
+    executor, futures = None, []
     try:
         with children_ignore_sigint():
-            executor = get_reusable_executor(max_workers=workers - 1)
-            for _ in range(workers - 1):
-                executor.submit(_ready)
-    except BaseException:  # a Ctrl-C taken as the block ends: the workers go with it
+            executor = get_reusable_executor(max_workers=processes)
+            futures = list(first(executor))
+    except BaseException:
+        for future in futures:
+            future.cancel()
         if executor is not None:
             executor.shutdown(wait=True)
             _stop_resource_tracker()
         raise
+    return executor
 
 
 @contextmanager
@@ -532,15 +544,13 @@ class FrameStream:
         # given at the start, so that it does not wait while they work off that queue
         self._hold = max(prime, self._ahead)
         if workers > 1 and len(chunks) > 1:
-            from joblib.externals.loky import get_reusable_executor
 
-            try:
-                with children_ignore_sigint():
-                    self._executor = get_reusable_executor(max_workers=workers - 1)
-                    self._submit(self._hold)
-            except BaseException:  # a Ctrl-C taken as the block ends: stop the workers
-                self.close()
-                raise
+            def first(executor: Any) -> Iterable[Any]:
+                self._executor = executor
+                self._submit(self._hold)
+                return self._futures.values()
+
+            self._executor = start_executor(workers - 1, first)
 
     def _submit(self, upto: int) -> None:
         while len(self._futures) < upto:

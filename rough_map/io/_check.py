@@ -5,11 +5,9 @@ from __future__ import annotations
 import stat
 from pathlib import Path
 
-from rough_map._bounded import clip as short
-from rough_map._bounded import short as quote
 from rough_map.errors import FileFormatError
 
-__all__ = ["MAX_MEMBER_BYTES", "MAX_POINTS", "check_count", "check_readable", "quote", "short"]
+__all__ = ["MAX_MEMBER_BYTES", "MAX_POINTS", "check_count", "check_readable"]
 
 MAX_POINTS = 2_000_000_000
 """Most points (or array elements) any reader accepts from a header, whatever the file size."""

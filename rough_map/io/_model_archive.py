@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from rough_map._bounded import brief
 from rough_map.errors import ModelError
 
 __all__ = [
@@ -29,7 +30,6 @@ __all__ = [
     "MAX_RATIO",
     "MAX_SCHEMA",
     "MAX_UNCOMPRESSED",
-    "brief",
     "check_archive",
 ]
 
@@ -49,14 +49,6 @@ MAX_DEPTH = 200
 """Deepest nesting of ``schema.json`` (objects and arrays; a model needs about 40)."""
 
 _STRING = re.compile(rb'"(?:[^"\\]|\\.)*"', re.DOTALL)
-
-
-def brief(err: BaseException, limit: int = 80) -> str:
-    """``Type: 'message'`` of an exception, the message quoted and truncated (never raw bytes)."""
-    text = repr(str(err))
-    if len(text) > limit:
-        text = text[: limit - 3] + "..."
-    return f"{type(err).__name__}: {text}"
 
 
 def json_depth(text: bytes) -> int:

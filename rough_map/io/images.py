@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
+from rough_map._bounded import clip
 from rough_map._files import PathLike
 from rough_map.errors import FileFormatError
-from rough_map.io._check import short
 
 __all__ = ["MAX_PIXELS", "image_size", "read_image"]
 
@@ -79,7 +79,7 @@ def read_image(path: PathLike, *, color: bool = False) -> np.ndarray:
     try:
         image = cv2.imdecode(np.frombuffer(data, np.uint8), flag)
     except cv2.error as err:  # e.g. over OpenCV's own pixel limit
-        raise FileFormatError(path, f"not an image OpenCV can decode: {short(err)}") from err
+        raise FileFormatError(path, f"not an image OpenCV can decode: {clip(err)}") from err
     if image is None:
         raise FileFormatError(path, "not an image OpenCV can decode")
     return np.asarray(image)

@@ -16,9 +16,10 @@ from typing import Any
 
 import numpy as np
 
+from rough_map._bounded import clip
 from rough_map._files import PathLike
 from rough_map.errors import FileFormatError, InputError
-from rough_map.io._check import MAX_POINTS, check_readable, short
+from rough_map.io._check import MAX_POINTS, check_readable
 
 log = logging.getLogger(__name__)
 
@@ -141,17 +142,17 @@ def read_las(path: PathLike) -> LasCloud:
         classification = np.concatenate(classes) if classes else np.zeros(0, np.uint8)
     except _las_errors() as err:
         raise FileFormatError(
-            path, f"not a readable LAS/LAZ file (truncated or corrupt?): {short(err)}"
+            path, f"not a readable LAS/LAZ file (truncated or corrupt?): {clip(err)}"
         ) from err
     except BaseException as err:
         if type(err).__name__ != "PanicException":  # a Rust panic in lazrs, not an exit
             raise
         raise FileFormatError(
-            path, f"not a readable LAS/LAZ file (the LAZ decoder failed): {short(err)}"
+            path, f"not a readable LAS/LAZ file (the LAZ decoder failed): {clip(err)}"
         ) from err
     except Exception as err:  # laspy parses hostile VLRs (extra bytes, ...): any failure
         raise FileFormatError(
-            path, f"not a readable LAS/LAZ file: {type(err).__name__}: {short(err)}"
+            path, f"not a readable LAS/LAZ file: {type(err).__name__}: {clip(err)}"
         ) from err
     if len(xyz) != expected:
         raise FileFormatError(
@@ -166,7 +167,7 @@ def read_las(path: PathLike) -> LasCloud:
         raise
     except Exception as err:  # hostile GeoTIFF keys or WKT in the VLRs
         raise FileFormatError(
-            path, f"unreadable CRS record: {type(err).__name__}: {short(err)}", field="crs"
+            path, f"unreadable CRS record: {type(err).__name__}: {clip(err)}", field="crs"
         ) from err
     if crs is not None and (crs.horizontal_unit_m != 1.0 or crs.vertical_unit_m != 1.0):
         log.info(

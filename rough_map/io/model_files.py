@@ -16,8 +16,9 @@ from pathlib import Path
 from typing import Any
 
 from rough_map import _files
+from rough_map._bounded import brief
 from rough_map.errors import FileFormatError, ModelError
-from rough_map.io._model_archive import MAX_DEPTH, brief, json_depth
+from rough_map.io._model_archive import MAX_DEPTH, json_depth
 from rough_map.resources import model_base, shipped_models, user_models_dir
 
 __all__ = [

@@ -25,8 +25,9 @@ from typing import IO
 
 import numpy as np
 
+from rough_map._bounded import clip, short
 from rough_map.errors import FileFormatError
-from rough_map.io._check import check_count, quote, short
+from rough_map.io._check import check_count
 
 __all__ = ["lzf_decompress", "read_pcd", "read_ply"]
 
@@ -77,7 +78,7 @@ def read_ply(path: Path) -> np.ndarray:
     with path.open("rb") as fh:
         head = fh.read(MAX_HEADER)
         if not head.startswith(b"ply"):
-            raise FileFormatError(path, f"not a PLY file: starts {quote(head[:12])}", "header")
+            raise FileFormatError(path, f"not a PLY file: starts {short(head[:12])}", "header")
         end = _PLY_END.search(head)
         if end is None:
             raise FileFormatError(path, _no_end(head, "end_header"), field="header")
@@ -117,8 +118,8 @@ def _ply_header(path: Path, text: str) -> tuple[str | None, list[_Element]]:
         if key == "format" and len(words) == 3 and words[1] in _PLY_FORMATS:
             fmt, seen_format = _PLY_FORMATS[words[1]], True
         elif key == "element" and len(words) == 3:
-            count = _int(path, words[2], "element count", f"element {quote(words[1], 20)}")
-            check_count(path, count, f"{quote(words[1], 20)} elements", "count")
+            count = _int(path, words[2], "element count", f"element {short(words[1], 20)}")
+            check_count(path, count, f"{short(words[1], 20)} elements", "count")
             elements.append(_Element(words[1], count))
         elif key == "property" and elements and len(words) == 3 and words[1] in _PLY_TYPES:
             elements[-1].props.append((words[2], _PLY_TYPES[words[1]]))
@@ -132,7 +133,7 @@ def _ply_header(path: Path, text: str) -> tuple[str | None, list[_Element]]:
         ):
             elements[-1].props.append((words[4], None))
         else:
-            raise FileFormatError(path, f"header line not understood: {quote(line)}", "header")
+            raise FileFormatError(path, f"header line not understood: {short(line)}", "header")
     if not seen_format:
         raise FileFormatError(path, "no valid 'format' line in the header", field="format")
     return fmt, elements
@@ -152,7 +153,7 @@ def _ply_binary(
         if any(kind is None for _, kind in element.props):
             raise FileFormatError(
                 path,
-                f"element {quote(element.name, 20)} with list properties before the vertices "
+                f"element {short(element.name, 20)} with list properties before the vertices "
                 "is not supported",
                 field="vertex",
             )
@@ -231,7 +232,7 @@ def read_pcd(path: Path) -> np.ndarray:
         if kind == "binary_compressed":
             fh.seek(offset)
             return _pcd_compressed(path, fh, remaining, dtype, points, columns)
-        raise FileFormatError(path, f"unknown DATA kind {quote(kind, 30)}", field="DATA")
+        raise FileFormatError(path, f"unknown DATA kind {short(kind, 30)}", field="DATA")
 
 
 def _pcd_header(path: Path, text: str) -> tuple[list[str], list[str], list[int], int]:
@@ -258,7 +259,7 @@ def _pcd_header(path: Path, text: str) -> tuple[list[str], list[str], list[int],
             or (letter == "F" and size not in (4, 8))
         ):
             raise FileFormatError(
-                path, f"unsupported TYPE {quote(letter, 10)} with SIZE {size}", field="TYPE"
+                path, f"unsupported TYPE {short(letter, 10)} with SIZE {size}", field="TYPE"
             )
         check_count(path, count, "values per field", "COUNT", limit=1_000_000)
         types.append(f"{letter.lower()}{size}")
@@ -304,7 +305,7 @@ def _pcd_compressed(
     try:
         data = lzf_decompress(fh.read(compressed), uncompressed)
     except ValueError as err:
-        raise FileFormatError(path, f"corrupt compressed data: {short(err)}", "DATA") from err
+        raise FileFormatError(path, f"corrupt compressed data: {clip(err)}", "DATA") from err
     # The data is stored field by field: all x, then all y, ...
     starts = [0]
     for name in dtype.names or ():
@@ -381,7 +382,7 @@ def _no_end(head: bytes, marker: str) -> str:
 
 def _int(path: Path, word: str, what: str, field_: str) -> int:
     if not word.isascii() or not word.isdigit() or len(word) > 19:
-        raise FileFormatError(path, f"{what} {quote(word, 30)} is not a count", field=field_)
+        raise FileFormatError(path, f"{what} {short(word, 30)} is not a count", field=field_)
     return int(word)
 
 
@@ -414,7 +415,7 @@ def _loadtxt(path: Path, fh: IO[bytes], rows: int, usecols: list[int], skip: int
     except ValueError as err:  # UnicodeDecodeError included
         if _complete_lines(fh, start) < skip + rows:  # the last row is cut
             raise FileFormatError(path, SHORT, field="points") from err
-        raise FileFormatError(path, f"not a table of numbers: {short(err)}", "points") from err
+        raise FileFormatError(path, f"not a table of numbers: {clip(err)}", "points") from err
     if len(table) < rows:
         raise FileFormatError(path, SHORT, field="points")
     return table

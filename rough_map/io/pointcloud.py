@@ -35,9 +35,10 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from rough_map._bounded import clip, short
 from rough_map._files import PathLike, atomic_output
 from rough_map.errors import FileFormatError, InputError
-from rough_map.io._check import check_readable, quote, short
+from rough_map.io._check import check_readable
 from rough_map.io.las import read_las, write_las
 from rough_map.io.ply_pcd import read_pcd, read_ply
 from rough_map.io.safe_npz import SafeNpz, read_npy
@@ -212,7 +213,7 @@ def _read_npz(path: Path) -> np.ndarray:
             raise FileFormatError(
                 path,
                 f"an .npz cloud holds 'points' (N x 3) or columns x, y, z; this one holds "
-                f"{quote(sorted(archive.files), 80)}",
+                f"{short(sorted(archive.files), 80)}",
                 field=missing[0],
             )
         keys = [k for c in "xyz" for k in (c, f"{c}_scale", f"{c}_offset") if k in archive]
@@ -222,15 +223,15 @@ def _read_npz(path: Path) -> np.ndarray:
         if col.ndim != 1 or col.dtype.kind not in "fiu":
             raise FileFormatError(
                 path,
-                f"expected a 1-D numeric column; got shape {short(col.shape, 40)}, "
-                f"dtype {short(col.dtype, 40)}",
+                f"expected a 1-D numeric column; got shape {clip(col.shape, 40)}, "
+                f"dtype {clip(col.dtype, 40)}",
                 field=c,
             )
         for key in (f"{c}_scale", f"{c}_offset"):
             value = arrays.get(key)
             if value is not None and (value.ndim != 0 or value.dtype.kind not in "fiu"):
                 raise FileFormatError(
-                    path, f"expected a number in m; got shape {short(value.shape, 40)}", field=key
+                    path, f"expected a number in m; got shape {clip(value.shape, 40)}", field=key
                 )
     if len({len(arrays[c]) for c in "xyz"}) > 1:
         lengths = ", ".join(f"{c} {len(arrays[c])}" for c in "xyz")
@@ -261,7 +262,7 @@ def _check_columns(columns: Sequence[str]) -> tuple[str, str, str]:
     if len(picked) != 3 or not all(picked) or len(set(picked)) != 3:
         raise InputError(
             f"columns must name the x, y and z columns (3 distinct names or numbers); got "
-            f"{quote(columns, 60)}"
+            f"{short(columns, 60)}"
         )
     return picked[0], picked[1], picked[2]
 
@@ -303,7 +304,7 @@ def _text_columns(
                 out.append(int(c) - 1)
             else:
                 have = ", ".join(names) if names else f"{n_columns} columns, no header"
-                raise FileFormatError(path, f"no column {c!r} (has {quote(have, 80)})", "header")
+                raise FileFormatError(path, f"no column {c!r} (has {short(have, 80)})", "header")
         return out
     if not names or {"x", "y", "z"} <= set(names):
         return [names.index(c) for c in "xyz"] if names else None
@@ -311,7 +312,7 @@ def _text_columns(
         return None  # three named columns (e, n, h...) are x, y, z; fewer: a shape error
     raise FileFormatError(
         path,
-        f"header {quote(', '.join(names), 50)} has no x, y, z: name them (--columns X,Y,Z)",
+        f"header {short(', '.join(names), 50)} has no x, y, z: name them (--columns X,Y,Z)",
         field="header",
     )
 
@@ -336,13 +337,13 @@ def _loadtxt(
         where = _LOADTXT_WHERE.search(str(err))
         if where is None:
             raise FileFormatError(
-                path, f"not a table of numbers: {short(err)}", field="text"
+                path, f"not a table of numbers: {clip(err)}", field="text"
             ) from err
         # numpy counts data rows from 0 (after header, comments, blank lines), columns from 1.
         row, column = int(where["row"]) + 1, int(where["column"])
         raise FileFormatError(
             path,
-            f"not a table of numbers: {quote(where['value'], 40)} in data row {row}, "
+            f"not a table of numbers: {short(where['value'], 40)} in data row {row}, "
             f"column {column}",
             field=f"row {row}, column {column}",
         ) from err

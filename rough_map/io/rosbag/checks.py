@@ -13,11 +13,11 @@ record or field.
 from __future__ import annotations
 
 import functools
-import reprlib
 import struct
 from pathlib import Path, PurePath
 from typing import Any
 
+from rough_map._bounded import short
 from rough_map.errors import FileFormatError
 
 #: Largest ``metadata.yaml`` read, bytes (a real one holds about 1 kB per topic; ruamel, which
@@ -39,13 +39,6 @@ _ROS1_MAGIC = b"#ROSBAG V2.0\n"
 _SQLITE_MAGIC = b"SQLite format 3\x00"
 _MCAP_COMPRESSIONS = ("", "lz4", "zstd")
 _ROS1_COMPRESSIONS = ("none", "bz2", "lz4")
-
-
-def quote(value: Any, limit: int = 40) -> str:
-    """``repr(value)``, cut to ``limit`` characters: safe to put in a one-line message
-    (containers are shown a few items and levels deep, however large they are)."""
-    text = repr(value[: limit + 1]) if isinstance(value, str) else reprlib.repr(value)
-    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def check_bag(path: Path) -> None:
@@ -129,7 +122,7 @@ def _metadata(name: str, text: str) -> tuple[str, tuple[Any, ...]]:
     storage = _get(path, info, "storage_identifier", str, where)
     if storage not in ("mcap", "sqlite3"):
         raise FileFormatError(
-            path, f"unsupported storage {quote(storage)}", where + "storage_identifier"
+            path, f"unsupported storage {short(storage)}", where + "storage_identifier"
         )
     for key in ("compression_mode", "compression_format"):
         value = info.get(key)
@@ -139,7 +132,7 @@ def _metadata(name: str, text: str) -> tuple[str, tuple[Any, ...]]:
     if mode not in ("", "none", "storage"):  # storage: compressed MCAP chunks, checked below
         raise FileFormatError(
             path,
-            f"compressed bags (mode {quote(mode)}) are not supported; decompress it first",
+            f"compressed bags (mode {short(mode)}) are not supported; decompress it first",
             where + "compression_mode",
         )
     for key, sub in (("duration", "nanoseconds"), ("starting_time", "nanoseconds_since_epoch")):
@@ -236,13 +229,13 @@ def _storage_files(path: Path, folder: Path, names: tuple[Any, ...]) -> list[Pat
     seen: set[str] = set()
     for i, name in enumerate(names):
         if not isinstance(name, str) or not 0 < len(name) <= MAX_NAME:
-            raise FileFormatError(path, f"not a file name: {quote(name)}", f"{field}[{i}]")
+            raise FileFormatError(path, f"not a file name: {short(name)}", f"{field}[{i}]")
         pure = PurePath(name)
         if pure.is_absolute() or ".." in pure.parts:
-            raise FileFormatError(path, f"{quote(name)} leaves the bag folder", f"{field}[{i}]")
+            raise FileFormatError(path, f"{short(name)} leaves the bag folder", f"{field}[{i}]")
         file = folder / pure.name  # where rosbags looks
         if pure.name in seen:
-            raise FileFormatError(path, f"{quote(name)} listed twice", f"{field}[{i}]")
+            raise FileFormatError(path, f"{short(name)} listed twice", f"{field}[{i}]")
         seen.add(pure.name)
         try:
             inside = file.resolve().parent == root and file.is_file()
@@ -250,7 +243,7 @@ def _storage_files(path: Path, folder: Path, names: tuple[Any, ...]) -> list[Pat
             inside = False
         if not inside:
             raise FileFormatError(
-                path, f"{quote(name)} is not a file of the bag folder", f"{field}[{i}]"
+                path, f"{short(name)} is not a file of the bag folder", f"{field}[{i}]"
             )
         files.append(file)
     return files
@@ -410,7 +403,7 @@ def _mcap_chunk(path: Path, f: Any, pos: int, length: int) -> tuple[int, str, in
         raise _corrupt(path, f"chunk at byte {pos} overruns its record", where)
     if compression not in _MCAP_COMPRESSIONS:
         raise _corrupt(
-            path, f"chunk at byte {pos}: unknown compression {quote(compression)}", where
+            path, f"chunk at byte {pos}: unknown compression {short(compression)}", where
         )
     if compression == "":
         if uncompressed != compressed:
@@ -563,7 +556,7 @@ def _ros1_chunk(path: Path, f: Any, fields: dict[str, bytes], data_length: int, 
     compression = fields.get("compression", b"").decode("latin-1")
     if compression not in _ROS1_COMPRESSIONS:
         raise _corrupt(
-            path, f"chunk at byte {pos}: unknown compression {quote(compression)}", "ros1 chunk"
+            path, f"chunk at byte {pos}: unknown compression {short(compression)}", "ros1 chunk"
         )
     if compression != "none":
         size = _uint(path, fields, "size", 4, pos)

@@ -34,9 +34,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from rough_map._bounded import short
 from rough_map.config import Crs, GeodeticOrigin
 from rough_map.errors import FileFormatError, InputError
-from rough_map.io.rosbag.checks import quote
 from rough_map.io.rosbag.messages import (
     ODOMETRY,
     TF_MESSAGE,
@@ -80,7 +80,7 @@ def _topic_type(reader: AnyReader, path: Path, topic: str) -> str:
         return ODOMETRY  # topic_messages names the topics the bag has
     raise FileFormatError(
         path,
-        f"not a pose topic: {quote(topic, 30)} carries {', '.join(types)[:60]}, not one of "
+        f"not a pose topic: {short(topic, 30)} carries {', '.join(types)[:60]}, not one of "
         f"{', '.join(t.split('/')[-1] for t in POSE_TYPES)}",
         field=topic_field(topic),
     )
@@ -297,14 +297,12 @@ def metric_crs(crs: Crs) -> Any:
     InputError
         An EPSG code GDAL does not know, or a CRS that is not projected in metres.
     """
-    from rasterio.crs import CRS
     from rasterio.errors import CRSError
 
     if crs.epsg is None and crs.origin is None:
         return None
     try:
-        target = CRS.from_epsg(crs.epsg) if crs.epsg is not None else CRS.from_proj4(
-            str(crs.proj_string()))  # fmt: skip
+        target = crs.rasterio()
     except CRSError:
         raise InputError(f"crs {crs.code} is not an EPSG code GDAL knows") from None
     if not target.is_projected or (target.linear_units or "").lower() not in ("metre", "meter"):

@@ -17,9 +17,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from rough_map._bounded import short
 from rough_map._files import PathLike
 from rough_map.errors import FileFormatError
-from rough_map.io.rosbag.checks import check_bag, quote
+from rough_map.io.rosbag.checks import check_bag
 from rough_map.io.rosbag.writer import ros_typestore
 
 if TYPE_CHECKING:
@@ -113,7 +114,7 @@ def read_errors() -> tuple[type[BaseException], ...]:
 
 def why(err: BaseException) -> str:
     """One short line about an error of rosbags: its type and its text, quoted and cut."""
-    return f"{type(err).__name__}: {quote(str(err), 70)}"
+    return f"{type(err).__name__}: {short(str(err), 70)}"
 
 
 @contextmanager
@@ -211,7 +212,7 @@ def topic_connections(reader: AnyReader, path: Path, topic: str, msgtype: str) -
     if not found:
         raise FileFormatError(
             path,
-            f"no topic {quote(topic, 30)} in the bag; available topics: "
+            f"no topic {short(topic, 30)} in the bag; available topics: "
             f"{available_topics({c.topic for c in reader.connections})}",
             field=field,
         )
@@ -219,7 +220,7 @@ def topic_connections(reader: AnyReader, path: Path, topic: str, msgtype: str) -
     if wrong:
         carries = ", ".join(topic_field(w, 40) for w in wrong[:3]) + (", ..." * (len(wrong) > 3))
         raise FileFormatError(
-            path, f"topic {quote(topic, 30)} carries {carries}, expected {msgtype}", field=field
+            path, f"topic {short(topic, 30)} carries {carries}, expected {msgtype}", field=field
         )
     if reader.typestore.fielddefs.get(msgtype) is not None:
         bag_layout = _layout(reader.typestore, msgtype)
@@ -246,7 +247,7 @@ def topic_field(topic: str, limit: int = 30) -> str:
     """A topic name as it can appear in a message: as is if short and printable, else
     quoted and cut to ``limit`` characters."""
     topic = str(topic)
-    return topic if topic.isprintable() and len(topic) <= limit else quote(topic, limit)
+    return topic if topic.isprintable() and len(topic) <= limit else short(topic, limit)
 
 
 def _layout(store: Any, msgtype: str) -> Any:
