@@ -330,9 +330,9 @@ class OnlineMapper:
             self.extraction.patch,
             self.name,
         )
-        raw_all, valid = model.raw_proba(table)
+        raw_all, valid, novelties = model.frame_scores(table)  # the features read once
         raw = raw_all[0] if valid[0] else None
-        novelty = float(model.novelty(table)[0]) if raw is not None else math.nan
+        novelty = float(novelties[0]) if raw is not None else math.nan
         flt = model.filter_
         if flt is None or model.evidence_per_m_ is None:
             if raw is None:

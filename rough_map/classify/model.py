@@ -524,6 +524,15 @@ class TerrainModel(BaseEstimator):
         X, valid = self._rows(table)
         return self._proba(X, valid), valid
 
+    def frame_scores(
+        self, table: Any
+    ) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64]]:
+        """:meth:`raw_proba` and :meth:`novelty` of each frame from one pass over its
+        features: ``(proba, valid, novelty)``."""
+        self._check_fitted()
+        X, valid = self._rows(table)
+        return self._proba(X, valid), valid, self._novelty(X, valid)
+
     def novelty(self, table: Any) -> NDArray[np.float64]:
         """How unlike every trained class each frame's ground is (see
         :attr:`TerrainPrediction.novelty`; NaN for invalid frames, or all NaN for a model
