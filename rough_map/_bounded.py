@@ -3,14 +3,16 @@
 Every JSON/YAML file (traverses, calibrations, configs, sidecars) goes through
 :func:`parse_document`, so every reader has the same limits:
 
-* the file is at most :data:`MAX_DOCUMENT_BYTES` (64 MB);
-* lists and mappings nest at most :data:`MAX_DEPTH` (64) levels;
-* integers have at most :data:`MAX_INT_DIGITS` (30) digits and numbers at most 400
+* the file is at most ``LIMITS.document`` (64 MB);
+* lists and mappings nest at most ``LIMITS.document_depth`` (64) levels;
+* integers have at most ``LIMITS.int_digits`` (30) digits and numbers at most 400
   characters (NaN and infinities pass: the models refuse them, naming the field);
 * YAML is read with PyYAML's ``SafeLoader`` (tags that build Python objects are refused),
   its nesting is checked while the node tree is composed (no deep recursion), and anchors
-  and aliases may not expand to more than :data:`MAX_NODES` nodes (no "billion laughs") or
-  refer to themselves.
+  and aliases may not expand to more than ``LIMITS.yaml_alias_values`` nodes (no "billion
+  laughs") or refer to themselves.
+
+The values are those of :data:`rough_map.limits.LIMITS`.
 
 A document over a limit is a :class:`~rough_map.errors.FileFormatError` naming the file and
 the place (line, or the path of keys) -- never a RecursionError, ValueError or a hang.
@@ -27,13 +29,9 @@ from typing import Any
 import yaml
 
 from rough_map.errors import FileFormatError
+from rough_map.limits import LIMITS
 
 __all__ = [
-    "MAX_DEPTH",
-    "MAX_DOCUMENT_BYTES",
-    "MAX_INT_DIGITS",
-    "MAX_NODES",
-    "MAX_YAML_BYTES",
     "brief",
     "check_tree",
     "clip",
@@ -44,24 +42,6 @@ __all__ = [
     "short",
     "shorten",
 ]
-
-MAX_DOCUMENT_BYTES = 64 * 1024 * 1024
-"""Largest JSON/YAML file read, bytes."""
-
-MAX_YAML_BYTES = 4 * 1024 * 1024
-"""Largest YAML document parsed, bytes: PyYAML's safe (pure-Python) parser takes about 6 s of
-CPU per MB, so this bounds its time; JSON, parsed in C, may be as large as
-:data:`MAX_DOCUMENT_BYTES`."""
-
-MAX_DEPTH = 64
-"""Deepest nesting of lists and mappings in a document."""
-
-MAX_INT_DIGITS = 30
-"""Most digits of an integer in a document."""
-
-MAX_NODES = 100_000
-"""Most values (scalars, lists, mappings) YAML aliases may add to a document (on top of a
-few times the values it spells out)."""
 
 
 class _Limit(Exception):
@@ -115,14 +95,16 @@ def _read_chunks(stream: Any, max_bytes: int) -> bytes:
     return b"".join(chunks)
 
 
-def read_document_text(path: Path, max_bytes: int = MAX_DOCUMENT_BYTES) -> str:
-    """The UTF-8 text of ``path``, refused beyond ``max_bytes``.
+def read_document_text(path: Path, max_bytes: int | None = None) -> str:
+    """The UTF-8 text of ``path``, refused beyond ``max_bytes`` (default
+    ``LIMITS.document``).
 
     Raises
     ------
     FileFormatError
         Missing, unreadable, too large, or not UTF-8.
     """
+    max_bytes = LIMITS.document if max_bytes is None else max_bytes
     try:
         with path.open("rb") as stream:
             size = os.fstat(stream.fileno()).st_size
@@ -147,8 +129,8 @@ def read_document_text(path: Path, max_bytes: int = MAX_DOCUMENT_BYTES) -> str:
 
 
 def _json_int(text: str) -> int:
-    if len(text.lstrip("-")) > MAX_INT_DIGITS:
-        raise _Limit(f"an integer of {len(text.lstrip('-'))} digits (most {MAX_INT_DIGITS})")
+    if len(text.lstrip("-")) > LIMITS.int_digits:
+        raise _Limit(f"an integer of {len(text.lstrip('-'))} digits (most {LIMITS.int_digits})")
     return int(text)
 
 
@@ -175,19 +157,20 @@ def parse_json(text: str, path: Path) -> Any:
     except _Limit as err:
         raise FileFormatError(path, str(err)) from None
     except RecursionError:
-        raise FileFormatError(path, f"nested deeper than {MAX_DEPTH} levels") from None
+        raise FileFormatError(path, f"nested deeper than {LIMITS.document_depth} levels") from None
     check_tree(data, path)
     return data
 
 
-def check_tree(data: Any, path: Path, max_depth: int = MAX_DEPTH) -> None:
+def check_tree(data: Any, path: Path, max_depth: int | None = None) -> None:
     """Check the nesting of parsed JSON-like data (lists and dicts) without recursion.
 
     Raises
     ------
     FileFormatError
-        Nested deeper than ``max_depth``.
+        Nested deeper than ``max_depth`` (default ``LIMITS.document_depth``).
     """
+    max_depth = LIMITS.document_depth if max_depth is None else max_depth
     stack: list[tuple[Any, int]] = [(data, 1)]
     while stack:
         value, depth = stack.pop()
@@ -213,9 +196,11 @@ class _BoundedLoader(yaml.SafeLoader):
     def compose_node(self, parent: Any, index: Any) -> Any:
         self._depth += 1
         try:
-            if self._depth > MAX_DEPTH:
+            if self._depth > LIMITS.document_depth:
                 mark = self.peek_event().start_mark
-                raise _Limit(f"nested deeper than {MAX_DEPTH} levels (line {mark.line + 1})")
+                raise _Limit(
+                    f"nested deeper than {LIMITS.document_depth} levels (line {mark.line + 1})"
+                )
             return super().compose_node(parent, index)
         finally:
             self._depth -= 1
@@ -223,10 +208,10 @@ class _BoundedLoader(yaml.SafeLoader):
 
 def _yaml_int(loader: yaml.SafeLoader, node: yaml.ScalarNode) -> int:
     digits = str(node.value).replace("_", "").lstrip("+-")
-    if len(digits) > MAX_INT_DIGITS:
+    if len(digits) > LIMITS.int_digits:
         raise _Limit(
             f"an integer of {len(digits)} digits at line {node.start_mark.line + 1} "
-            f"(most {MAX_INT_DIGITS})"
+            f"(most {LIMITS.int_digits})"
         )
     return int(yaml.SafeLoader.construct_yaml_int(loader, node))
 
@@ -258,8 +243,9 @@ for _tag in ("opencv-matrix", "opencv-nd-matrix"):
 
 
 def _check_nodes(root: yaml.Node) -> None:
-    """Refuse node graphs (aliases shared) that expand beyond MAX_NODES or MAX_DEPTH, or that
-    contain themselves. Iterative, memoised per node: linear in the graph's size."""
+    """Refuse node graphs (aliases shared) that expand beyond ``LIMITS.yaml_alias_values``
+    values or ``LIMITS.document_depth`` levels, or that contain themselves. Iterative,
+    memoised per node: linear in the graph's size."""
     size: dict[int, int] = {}
     depth: dict[int, int] = {}
     active: set[int] = set()
@@ -276,10 +262,10 @@ def _check_nodes(root: yaml.Node) -> None:
             active.discard(key)
             size[key] = 1 + sum(size[id(c)] for c in children)
             depth[key] = 1 + max((depth[id(c)] for c in children), default=0)
-            if size[key] > MAX_NODES + len(size) * 4:
-                raise _Limit(f"aliases expand to more than {MAX_NODES} values")
-            if depth[key] > MAX_DEPTH:
-                raise _Limit(f"aliases nest deeper than {MAX_DEPTH} levels")
+            if size[key] > LIMITS.yaml_alias_values + len(size) * 4:
+                raise _Limit(f"aliases expand to more than {LIMITS.yaml_alias_values} values")
+            if depth[key] > LIMITS.document_depth:
+                raise _Limit(f"aliases nest deeper than {LIMITS.document_depth} levels")
             continue
         if key in size:
             continue
@@ -308,9 +294,9 @@ def parse_yaml(text: str, path: Path, *, opencv: bool = False) -> Any:
     FileFormatError
         A syntax error, a tag that is not plain data, or a document over a limit.
     """
-    if len(text) > MAX_YAML_BYTES:
+    if len(text) > LIMITS.yaml_document:
         raise FileFormatError(
-            path, f"a YAML file of {len(text)} characters; at most {MAX_YAML_BYTES} are read"
+            path, f"a YAML file of {len(text)} characters; at most {LIMITS.yaml_document} are read"
         )
     if opencv and text.lstrip().startswith("%YAML"):
         text = text.lstrip().split("\n", 1)[1] if "\n" in text.lstrip() else ""

@@ -31,7 +31,6 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from rough_map._bounded import (
-    MAX_DOCUMENT_BYTES,
     clip,
     parse_document,
     parse_json,
@@ -41,9 +40,9 @@ from rough_map._bounded import (
 )
 from rough_map.errors import FileFormatError, SchemaError
 from rough_map.geometry import CAMERA_AXES_IN_VEHICLE
+from rough_map.limits import LIMITS
 
 __all__ = [
-    "MAX_IMAGE_SIDE",
     "Rectification",
     "camera_info_values",
     "check_principal_point",
@@ -53,8 +52,6 @@ __all__ = [
     "opencv_values",
 ]
 
-#: Largest image side of a calibration, px (also the schema's bound, rough_map.config).
-MAX_IMAGE_SIDE = 65_536
 
 #: Tolerance of "the identity" and "the same row" checks (dimensionless, px).
 _EPS = 1e-9
@@ -449,9 +446,11 @@ def _image_size(fs: Any, path: Path) -> tuple[int, int]:
                 path, "missing: give image_width and image_height (px)", "image_width"
             )
         size = (int(both[0]), int(both[1]))
-    if min(size) <= 0 or max(size) > MAX_IMAGE_SIDE:
+    if min(size) <= 0 or max(size) > LIMITS.calibration_image_side:
         raise SchemaError(
-            path, f"must be in 1..{MAX_IMAGE_SIDE} px, got {short(size)}", "image_width"
+            path,
+            f"must be in 1..{LIMITS.calibration_image_side} px, got {short(size)}",
+            "image_width",
         )
     return size
 
@@ -483,8 +482,8 @@ def opencv_values(path: str | Path, camera_to_vehicle: Any = None) -> dict[str, 
         size_bytes = -1
     if size_bytes < 0:
         raise FileFormatError(path, "cannot read: no such file")
-    if size_bytes > MAX_DOCUMENT_BYTES:
-        raise FileFormatError(path, f"larger than {MAX_DOCUMENT_BYTES // 2**20} MB")
+    if size_bytes > LIMITS.document:
+        raise FileFormatError(path, f"larger than {LIMITS.document // 2**20} MB")
     fs: Any
     if path.suffix.lower() == ".xml":
         try:

@@ -44,7 +44,6 @@ from pydantic_core import PydanticCustomError
 from rough_map._bounded import short
 from rough_map._files import atomic_output
 from rough_map.calibration_files import (
-    MAX_IMAGE_SIDE,
     Rectification,
     camera_info_values,
     check_principal_point,
@@ -55,6 +54,7 @@ from rough_map.config_files import format_location, load_model, schema_error
 from rough_map.config_files import load_mapping as load_mapping
 from rough_map.errors import InputError
 from rough_map.geometry import CAMERA_AXES_IN_VEHICLE, pose_matrix, rotation_matrix
+from rough_map.limits import LIMITS
 
 SCHEMA_VERSION = "1.0"
 """Version of the traverse format written by this release."""
@@ -244,8 +244,8 @@ class StereoCalibration(_Model):
     fy: float = Field(gt=0, description="Focal length along y, px.")
     cx: float = Field(description="Principal point column, px (pixel centres at integers).")
     cy: float = Field(description="Principal point row, px.")
-    width: int = Field(gt=0, le=MAX_IMAGE_SIDE, description="Image width, px.")
-    height: int = Field(gt=0, le=MAX_IMAGE_SIDE, description="Image height, px.")
+    width: int = Field(gt=0, le=LIMITS.calibration_image_side, description="Image width, px.")
+    height: int = Field(gt=0, le=LIMITS.calibration_image_side, description="Image height, px.")
     baseline: float = Field(gt=0, description="Distance between the optical centres, m.")
     camera_to_vehicle: list[list[float]] = Field(
         description="4x4 transform, row-major: left-camera coordinates (m) -> vehicle (m)."

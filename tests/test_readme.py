@@ -7,13 +7,16 @@ checked by hand with ``--tables``.
 
 from __future__ import annotations
 
-import importlib
+import dataclasses
 import re
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+
+from rough_map import _bounded, limits
+from rough_map.errors import FileFormatError
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tools"))
@@ -47,25 +50,41 @@ def test_readme_transcripts_match_their_commands(tmp_path: Path) -> None:
     assert proc.returncode == 0, proc.stderr[-4000:]
 
 
-def _limit_value(text: str) -> int:
-    """``65,536 B`` -> 65536, ``4 GiB`` -> 4 * 2**30, ``100,000,000 px`` -> 100000000."""
-    match = re.fullmatch(r"([\d,]+)\s*(KiB|MiB|GiB|B|px)?", text.strip())
-    assert match, f"not a limit: {text!r}"
-    scale = {"KiB": 2**10, "MiB": 2**20, "GiB": 2**30}.get(match.group(2) or "", 1)
-    return int(match.group(1).replace(",", "")) * scale
-
-
-def test_limits_table_shows_the_values_in_the_code() -> None:
-    """Each row of the README's limits table names the constant it shows; they agree."""
+def test_limits_table_is_the_table_of_data() -> None:
+    """The README's limits table is ``rough_map.limits.markdown_table()``, row for row."""
     text = (ROOT / "README.md").read_text(encoding="utf-8")
     section = text.split("## Limits", 1)[1].split("\n## ", 1)[0]
-    rows = [r for r in section.splitlines() if r.startswith("| ") and "`rough_map." in r]
-    assert len(rows) >= 15
-    for row in rows:
-        _, _what, shown, where, _ = row.split("|")
-        module, _, name = where.strip().strip("`").rpartition(".")
-        value = getattr(importlib.import_module(module), name)
-        assert _limit_value(shown) == value, f"{where.strip()} is {value}, README shows {shown}"
+    table = limits.markdown_table()
+    assert table in section, "README's limits table differs from rough_map.limits"
+    assert len(table.splitlines()) == 2 + len(dataclasses.fields(limits.Limits))
+
+
+def test_limits_are_shown_in_their_units() -> None:
+    assert limits.shown(65_536, "B") == "64 KiB"
+    assert limits.shown(4 * 2**30, "B") == "4 GiB"
+    assert limits.shown(10_000, "B") == "10,000 B"
+    assert limits.shown(1100, "x") == "1,100x"
+    assert limits.shown(64, "") == "64"
+    assert limits.shown(2**24, "cells") == "16,777,216 cells"
+
+
+def test_readers_take_their_limits_from_the_table(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A reader enforces the table's value, not one of its own: with the nesting limit
+    lowered to 3 in the table, a document nested 4 deep is refused; and no module of the
+    package defines a ``MAX_`` constant of the table's any more."""
+    doc = tmp_path / "deep.json"
+    doc.write_text('{"a": [[[1]]]}', encoding="utf-8")
+    assert _bounded.parse_document(doc) == {"a": [[[1]]]}
+    monkeypatch.setattr(_bounded, "LIMITS", dataclasses.replace(limits.LIMITS, document_depth=3))
+    with pytest.raises(FileFormatError, match=r"deep\.json.*nested deeper than 3 levels"):
+        _bounded.parse_document(doc)
+    old = re.compile(r"^_?(MAX_(POINTS|HEADER|PIXELS|DOCUMENT_BYTES|YAML_BYTES|DEPTH|NODES|CARD|"
+                     r"INT_DIGITS|FILE|MEMBERS|CHUNK|SAMPLES|CELLS|PROFILE|SCHEMA|RATIO)|"
+                     r"LAZ_MAX_RATIO|DEFLATE_RATIO) = ", re.M)  # fmt: skip
+    for path in (ROOT / "rough_map").rglob("*.py"):
+        assert not old.search(path.read_text(encoding="utf-8")), path
 
 
 def test_matcher_with_a_tolerance_lets_only_the_numbers_move() -> None:

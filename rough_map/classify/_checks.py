@@ -23,13 +23,11 @@ from rough_map.classify.model import MODES
 from rough_map.classify.spectral import INPUT_SCALARS
 from rough_map.classify.training import CLASSIFIERS
 from rough_map.errors import ModelError
+from rough_map.limits import LIMITS
 from rough_map.patch import Extraction
 
 __all__ = ["check_loaded_model"]
 
-_MAX_CLASSES = 1000
-_MAX_BINS = 100_000
-_MAX_FEATURES = 100_000
 _MAX_RATE = 1e6  # 1/m, switch rates of the path filter
 
 
@@ -66,8 +64,12 @@ def _number(value: Any, name: str, low: float = -math.inf, high: float = math.in
 
 
 def _labels(obj: Any, name: str) -> list[str]:
-    if not isinstance(obj, np.ndarray) or obj.ndim != 1 or not 2 <= len(obj) <= _MAX_CLASSES:
-        raise _Bad(f"{name} must be a 1-d array of 2 to {_MAX_CLASSES} class names")
+    if (
+        not isinstance(obj, np.ndarray)
+        or obj.ndim != 1
+        or not 2 <= len(obj) <= LIMITS.model_classes
+    ):
+        raise _Bad(f"{name} must be a 1-d array of 2 to {LIMITS.model_classes} class names")
     values = list(obj)
     if not all(isinstance(v, str) for v in values):
         raise _Bad(f"{name} must hold strings")
@@ -83,7 +85,7 @@ def _check_terrain(model: Any) -> None:
         raise _Bad(f"kind {model.kind!r:.30} or mode {model.mode!r:.30} unknown")
     _labels(model.classes_, "classes_")
     omega = _array(model.omega_, "omega_", 1)
-    if not 2 <= len(omega) <= _MAX_BINS or omega[0] <= 0 or np.any(np.diff(omega) <= 0):
+    if not 2 <= len(omega) <= LIMITS.model_bins or omega[0] <= 0 or np.any(np.diff(omega) <= 0):
         raise _Bad("omega_ must be 2 or more increasing positive wavenumbers")
     names, thresholds = model.level_names_, model.level_thresholds_
     if not (
@@ -267,7 +269,11 @@ def _check_classifier(model: Any) -> int:
     if band.shape != omega.shape or band.min() < -1 or band.max() >= len(omega):
         raise _Bad("features.band_ malformed")
     names = feats.feature_names_out_
-    if not isinstance(names, np.ndarray) or names.ndim != 1 or not 1 <= len(names) <= _MAX_FEATURES:
+    if (
+        not isinstance(names, np.ndarray)
+        or names.ndim != 1
+        or not 1 <= len(names) <= LIMITS.model_features
+    ):
         raise _Bad("features.feature_names_out_ malformed")
     n = len(names)
     _is(scale, "sklearn.preprocessing._data.StandardScaler")

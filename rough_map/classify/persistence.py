@@ -46,7 +46,7 @@ from rough_map.classify.model import MODEL_FORMAT, TerrainModel
 from rough_map.classify.spectral import FEATURE_DOC, INPUT_SCALARS
 from rough_map.config import jsonable
 from rough_map.errors import FileFormatError, ModelError
-from rough_map.io._model_archive import MAX_FILE, check_archive
+from rough_map.io._model_archive import check_archive
 from rough_map.io.model_files import (
     CARD_FORMAT,
     CARD_SUFFIX,
@@ -57,6 +57,7 @@ from rough_map.io.model_files import (
     resolve_pending,
     sha256_file,
 )
+from rough_map.limits import LIMITS
 
 log = logging.getLogger(__name__)
 
@@ -276,8 +277,10 @@ def load_terrain_model(name: str | Path, *, verify: bool = True) -> Any:
     resolve_pending(model_file, card_file)
     try:
         size = model_file.stat().st_size
-        if size > MAX_FILE:
-            raise ModelError(f"{model_file}: {size} bytes; a model file has at most {MAX_FILE}")
+        if size > LIMITS.model_file:
+            raise ModelError(
+                f"{model_file}: {size} bytes; a model file has at most {LIMITS.model_file}"
+            )
         data = model_file.read_bytes()
     except OSError as err:
         raise ModelError(f"{model_file}: cannot read the model ({brief(err)})") from err

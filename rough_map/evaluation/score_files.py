@@ -46,6 +46,7 @@ from rough_map.evaluation.score import (
     score_cells,
 )
 from rough_map.io.truth_raster import read_class_names
+from rough_map.limits import LIMITS
 
 log = logging.getLogger(__name__)
 
@@ -229,16 +230,11 @@ def read_map_dir(map_dir: PathLike) -> dict[str, Any]:
         raise FileFormatError(map_dir, f"cannot read a map file: {msg}") from None
 
 
-#: Most cells of a map raster read whole, and the most per byte of its file (deflate).
-_MAX_CELLS = 2**31
-_CELLS_PER_BYTE = 1100
-
-
 def _check_size(path: Path, ds: Any) -> None:
     """Refuse a raster whose declared size its file cannot hold (compressed) or beyond
-    :data:`_MAX_CELLS`, before reading it."""
+    ``LIMITS.raster_cells``, before reading it."""
     cells = int(ds.width) * int(ds.height) * int(ds.count)
-    limit = min(_MAX_CELLS, path.stat().st_size * _CELLS_PER_BYTE + 2**20)
+    limit = min(LIMITS.raster_cells, path.stat().st_size * LIMITS.deflate_ratio + 2**20)
     if cells > limit:
         raise FileFormatError(
             path, f"declares {ds.width} x {ds.height} x {ds.count} cells, more than it holds"

@@ -6,14 +6,9 @@ import stat
 from pathlib import Path
 
 from rough_map.errors import FileFormatError
+from rough_map.limits import LIMITS
 
-__all__ = ["MAX_MEMBER_BYTES", "MAX_POINTS", "check_count", "check_readable"]
-
-MAX_POINTS = 2_000_000_000
-"""Most points (or array elements) any reader accepts from a header, whatever the file size."""
-
-MAX_MEMBER_BYTES = 4 * 2**30
-"""Largest uncompressed member of an archive (.npz) that is read, in bytes."""
+__all__ = ["check_count", "check_readable"]
 
 
 def check_readable(path: Path) -> None:
@@ -32,7 +27,9 @@ def check_readable(path: Path) -> None:
         raise FileFormatError(path, "the file is empty")
 
 
-def check_count(path: Path, count: int, what: str, field: str, *, limit: int = MAX_POINTS) -> None:
+def check_count(
+    path: Path, count: int, what: str, field: str, *, limit: int = LIMITS.points
+) -> None:
     """Raise a :class:`FileFormatError` unless ``0 <= count <= limit``."""
     if not 0 <= count <= limit:
         raise FileFormatError(

@@ -2,10 +2,11 @@
 
 A ``.skops`` file is a zip of ``schema.json`` and ``.npy`` arrays. :func:`check_archive`
 refuses, with a one-line :class:`~rough_map.errors.ModelError`, an archive that is not a zip,
-has too many members, declares more uncompressed bytes than :data:`MAX_UNCOMPRESSED` or a
-compression ratio above :data:`MAX_RATIO` (a zip bomb), a ``schema.json`` larger than
-:data:`MAX_SCHEMA` or nested deeper than :data:`MAX_DEPTH`, or an ``.npy`` member whose header
-declares more data than the member holds.
+has too many members, declares more uncompressed bytes than ``LIMITS.model_uncompressed``
+or a compression ratio above ``LIMITS.model_member_ratio`` (a zip bomb), a ``schema.json``
+larger than ``LIMITS.model_schema`` or nested deeper than ``LIMITS.model_schema_depth``, or
+an ``.npy`` member whose header declares more data than the member holds
+(:data:`rough_map.limits.LIMITS`).
 """
 
 from __future__ import annotations
@@ -22,31 +23,12 @@ import numpy as np
 
 from rough_map._bounded import brief
 from rough_map.errors import ModelError
+from rough_map.limits import LIMITS
 
 __all__ = [
-    "MAX_DEPTH",
-    "MAX_FILE",
-    "MAX_MEMBERS",
-    "MAX_RATIO",
-    "MAX_SCHEMA",
-    "MAX_UNCOMPRESSED",
     "check_archive",
 ]
 
-MAX_FILE = 256 * 2**20
-"""Largest model file read, bytes (a forest of 200 trees is a few MB)."""
-MAX_UNCOMPRESSED = 256 * 2**20
-"""Largest total of the members' declared uncompressed sizes, bytes, and of the sizes of the
-members the schema refers to (counted once per reference: skops reads a member per node)."""
-MAX_MEMBERS = 100_000
-"""Most members of the archive."""
-MAX_RATIO = 200
-"""Largest uncompressed / compressed size of a member above 1 MB (deflate reaches ~1000 on
-runs of zeros, numeric arrays stay far below)."""
-MAX_SCHEMA = 32 * 2**20
-"""Largest ``schema.json``, bytes (a forest of 200 trees has about 6 MB)."""
-MAX_DEPTH = 200
-"""Deepest nesting of ``schema.json`` (objects and arrays; a model needs about 40)."""
 
 _STRING = re.compile(rb'"(?:[^"\\]|\\.)*"', re.DOTALL)
 
@@ -120,37 +102,45 @@ def check_archive(data: bytes, where: Path) -> None:
         raise ModelError(f"{where}: not a skops model file (not a zip: {brief(err)})") from None
     with zf:
         members = zf.infolist()
-        if len(members) > MAX_MEMBERS:
-            raise ModelError(f"{where}: {len(members)} archive members; at most {MAX_MEMBERS}")
+        if len(members) > LIMITS.model_members:
+            raise ModelError(
+                f"{where}: {len(members)} archive members; at most {LIMITS.model_members}"
+            )
         total = 0
         for info in members:
             total += info.file_size
-            if info.file_size > 2**20 and info.file_size > MAX_RATIO * max(info.compress_size, 1):
+            if info.file_size > 2**20 and info.file_size > LIMITS.model_member_ratio * max(
+                info.compress_size, 1
+            ):
                 raise ModelError(
                     f"{where}: member {info.filename!r:.60} expands {info.compress_size} bytes "
-                    f"to {info.file_size} (ratio above {MAX_RATIO}): refused as a zip bomb"
+                    f"to {info.file_size} (ratio above {LIMITS.model_member_ratio}): refused as a "
+                    "zip bomb"
                 )
-        if total > MAX_UNCOMPRESSED:
+        if total > LIMITS.model_uncompressed:
             raise ModelError(
-                f"{where}: members declare {total} uncompressed bytes; at most {MAX_UNCOMPRESSED}"
+                f"{where}: members declare {total} uncompressed bytes; at most "
+                f"{LIMITS.model_uncompressed}"
             )
         names = {info.filename: info for info in members}
         schema = names.get("schema.json")
         if schema is None:
             raise ModelError(f"{where}: not a skops model file (no schema.json)")
-        if schema.file_size > MAX_SCHEMA:
+        if schema.file_size > LIMITS.model_schema:
             raise ModelError(
-                f"{where}: schema.json of {schema.file_size} bytes; at most {MAX_SCHEMA}"
+                f"{where}: schema.json of {schema.file_size} bytes; at most {LIMITS.model_schema}"
             )
         try:
             text = zf.read(schema)
         except Exception as err:  # zlib.error, BadZipFile, EOFError, ...
             raise ModelError(f"{where}: schema.json unreadable ({brief(err)})") from None
-        if len(text) > MAX_SCHEMA:  # a lying header
-            raise ModelError(f"{where}: schema.json larger than {MAX_SCHEMA} bytes")
+        if len(text) > LIMITS.model_schema:  # a lying header
+            raise ModelError(f"{where}: schema.json larger than {LIMITS.model_schema} bytes")
         depth = json_depth(text)
-        if depth > MAX_DEPTH:
-            raise ModelError(f"{where}: schema.json nested {depth} deep; at most {MAX_DEPTH}")
+        if depth > LIMITS.model_schema_depth:
+            raise ModelError(
+                f"{where}: schema.json nested {depth} deep; at most {LIMITS.model_schema_depth}"
+            )
         try:
             parsed: Any = json.loads(text)
         except Exception as err:  # JSONDecodeError, UnicodeDecodeError, ...
@@ -158,10 +148,10 @@ def check_archive(data: bytes, where: Path) -> None:
         if not isinstance(parsed, dict):
             raise ModelError(f"{where}: schema.json is not a JSON object")
         referenced = _referenced_bytes(parsed, names)
-        if referenced > MAX_UNCOMPRESSED:
+        if referenced > LIMITS.model_uncompressed:
             raise ModelError(
                 f"{where}: schema.json refers to {referenced} bytes of arrays; at most "
-                f"{MAX_UNCOMPRESSED}"
+                f"{LIMITS.model_uncompressed}"
             )
         for info in members:
             if info.filename.endswith(".npy"):

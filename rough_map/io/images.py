@@ -2,7 +2,7 @@
 
 OpenCV decodes the file (any format it reads: PNG, JPEG, TIFF, PGM ...); it is imported
 only when an image is read. Before decoding, the width and height in the header of a PNG,
-JPEG, BMP, PNM or TIFF file are checked against :data:`MAX_PIXELS` and, but for TIFF,
+JPEG, BMP, PNM or TIFF file are checked against ``LIMITS.image_pixels`` and, but for TIFF,
 against what the file's size can hold, so a small forged file (a decompression bomb) is
 refused instead of allocating gigabytes.
 """
@@ -18,14 +18,10 @@ import numpy as np
 from rough_map._bounded import clip
 from rough_map._files import PathLike
 from rough_map.errors import FileFormatError
+from rough_map.limits import LIMITS
 
-__all__ = ["MAX_PIXELS", "image_size", "read_image"]
+__all__ = ["image_size", "read_image"]
 
-MAX_PIXELS = 100_000_000
-"""Largest image accepted, in pixels (width × height)."""
-
-_MAX_RATIO = 1100
-"""Pixels one byte of a PNG, JPEG, BMP or PNM file can hold at most (deflate's bound ~1032)."""
 
 _SLACK = 1 << 20
 """Pixels always allowed whatever the file size (tiny flat images compress very well)."""
@@ -53,7 +49,7 @@ def read_image(path: PathLike, *, color: bool = False) -> np.ndarray:
     Raises
     ------
     FileFormatError
-        The file is missing, its header declares more than :data:`MAX_PIXELS` pixels or
+        The file is missing, its header declares more than ``LIMITS.image_pixels`` pixels or
         more than its size can hold, or it is not an image OpenCV can decode.
     """
     import cv2  # heavy: only when an image is read
@@ -65,7 +61,11 @@ def read_image(path: PathLike, *, color: bool = False) -> np.ndarray:
     size = image_size(data)
     if size is not None:
         width, height, kind = size
-        limit = MAX_PIXELS if kind == "TIFF" else min(MAX_PIXELS, _MAX_RATIO * len(data) + _SLACK)
+        limit = (
+            LIMITS.image_pixels
+            if kind == "TIFF"
+            else min(LIMITS.image_pixels, LIMITS.deflate_ratio * len(data) + _SLACK)
+        )
         if width * height > limit:
             raise FileFormatError(
                 path,

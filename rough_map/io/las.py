@@ -19,7 +19,8 @@ import numpy as np
 from rough_map._bounded import clip
 from rough_map._files import PathLike
 from rough_map.errors import FileFormatError, InputError
-from rough_map.io._check import MAX_POINTS, check_readable
+from rough_map.io._check import check_readable
+from rough_map.limits import LIMITS
 
 log = logging.getLogger(__name__)
 
@@ -185,10 +186,6 @@ def read_las(path: PathLike) -> LasCloud:
 _RECORD_SIZES = (20, 28, 26, 34, 57, 63, 30, 36, 38, 59, 67)
 _HEADER_SIZES = {0: 227, 1: 227, 2: 227, 3: 235, 4: 375}  # by minor version
 _VLR_HEADER, _EVLR_HEADER = 54, 60
-LAZ_MAX_RATIO = 200
-"""Largest accepted ratio of decompressed point bytes to LAZ data bytes (real airborne lidar:
-about 6; a rough simulated grid: 25; only degenerate clouds, such as a flat regular grid,
-compress more)."""
 _READ_CHUNK = 1_000_000  # points decoded at a time
 
 
@@ -198,7 +195,7 @@ def check_las_header(path: Path) -> None:
 
     Checked: the signature, header size, offset to the point data, the VLRs (count and
     lengths), the point format and record length, the point count (LAS: the records fit in
-    the file; LAZ: at most :data:`LAZ_MAX_RATIO` times the file size, and the chunk table),
+    the file; LAZ: at most ``LIMITS.laz_ratio`` times the file size, and the chunk table),
     and the EVLRs of LAS 1.4.
 
     Raises
@@ -243,11 +240,11 @@ def check_las_header(path: Path) -> None:
         data = size - offset
         if compressed:
             record = max(record, _laszip_item_size(path, laszip))
-            if count > MAX_POINTS or count * record > LAZ_MAX_RATIO * data:
+            if count > LIMITS.points or count * record > LIMITS.laz_ratio * data:
                 raise FileFormatError(
                     path,
                     f"the header declares {count} points of {record} B in {data} B of LAZ data "
-                    f"(limit {LAZ_MAX_RATIO}x); corrupt",
+                    f"(limit {LIMITS.laz_ratio}x); corrupt",
                     field="points",
                 )
             _check_chunk_table(path, fh, offset, size, count)

@@ -18,13 +18,13 @@ from typing import Any
 from rough_map import _files
 from rough_map._bounded import brief
 from rough_map.errors import FileFormatError, ModelError
-from rough_map.io._model_archive import MAX_DEPTH, json_depth
+from rough_map.io._model_archive import json_depth
+from rough_map.limits import LIMITS
 from rough_map.resources import model_base, shipped_models, user_models_dir
 
 __all__ = [
     "CARD_FORMAT",
     "CARD_SUFFIX",
-    "MAX_CARD",
     "MODEL_SUFFIX",
     "card_extraction",
     "model_paths",
@@ -37,8 +37,6 @@ __all__ = [
 MODEL_SUFFIX = ".skops"
 CARD_SUFFIX = ".card.json"
 CARD_FORMAT = "rough_map model card 1"
-MAX_CARD = 16 * 2**20
-"""Largest model card read, bytes."""
 
 
 def model_paths(name: str | Path) -> tuple[Path, Path]:
@@ -132,11 +130,13 @@ def read_card(name: str | Path) -> dict[str, Any]:
     model_file, card_file = model_paths(name)
     resolve_pending(model_file, card_file)
     try:
-        if card_file.stat().st_size > MAX_CARD:
-            raise ModelError(f"{card_file}: model card larger than {MAX_CARD} bytes")
+        if card_file.stat().st_size > LIMITS.model_card:
+            raise ModelError(f"{card_file}: model card larger than {LIMITS.model_card} bytes")
         text = card_file.read_bytes()
-        if json_depth(text) > MAX_DEPTH:
-            raise ModelError(f"{card_file}: model card nested deeper than {MAX_DEPTH}")
+        if json_depth(text) > LIMITS.model_schema_depth:
+            raise ModelError(
+                f"{card_file}: model card nested deeper than {LIMITS.model_schema_depth}"
+            )
         card = json.loads(text.decode("utf-8"))
     except FileNotFoundError:
         raise ModelError(f"{card_file}: no model card") from None

@@ -28,11 +28,10 @@ import numpy as np
 from rough_map._bounded import clip, short
 from rough_map.errors import FileFormatError
 from rough_map.io._check import check_count
+from rough_map.limits import LIMITS
 
 __all__ = ["lzf_decompress", "read_pcd", "read_ply"]
 
-MAX_HEADER = 65536
-"""Longest PLY or PCD header accepted, in bytes."""
 
 SHORT = "truncated: the file is shorter than its header declares"
 
@@ -76,7 +75,7 @@ def read_ply(path: Path) -> np.ndarray:
     """
     size = path.stat().st_size
     with path.open("rb") as fh:
-        head = fh.read(MAX_HEADER)
+        head = fh.read(LIMITS.cloud_header)
         if not head.startswith(b"ply"):
             raise FileFormatError(path, f"not a PLY file: starts {short(head[:12])}", "header")
         end = _PLY_END.search(head)
@@ -203,7 +202,7 @@ def read_pcd(path: Path) -> np.ndarray:
     """
     size = path.stat().st_size
     with path.open("rb") as fh:
-        head = fh.read(MAX_HEADER)
+        head = fh.read(LIMITS.cloud_header)
         end = _PCD_DATA.search(head)
         if end is None:
             raise FileFormatError(path, _no_end(head, "DATA"), field="header")
@@ -375,8 +374,8 @@ def _header_text(path: Path, head: bytes) -> str:
 
 
 def _no_end(head: bytes, marker: str) -> str:
-    if len(head) >= MAX_HEADER:
-        return f"no {marker} line in the first {MAX_HEADER} B: not a header"
+    if len(head) >= LIMITS.cloud_header:
+        return f"no {marker} line in the first {LIMITS.cloud_header} B: not a header"
     return f"no {marker} line: not a header, or truncated"
 
 

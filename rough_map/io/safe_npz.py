@@ -6,9 +6,9 @@ arrays (they would need pickle), and check that the declared shape and dtype fit
 file or member really holds before allocating anything. An archive's members are also checked
 for size and compression ratio (a deflated member cannot be more than about 1032 times its
 compressed size), and all the arrays read from one archive together may hold at most
-:data:`_MAX_ARCHIVE_RATIO` times the archive's size: real data compresses a few times, more is
-a zip bomb. Members inflate in 1 MiB pieces. Every failure is a one-line
-:class:`~rough_map.errors.FileFormatError` naming the file and the member.
+``LIMITS.archive_ratio`` times the archive's size (plus 4 MiB): real point clouds and worlds
+compress 1.5-3 times, more is a zip bomb. Members inflate in 1 MiB pieces. Every failure is a
+one-line :class:`~rough_map.errors.FileFormatError` naming the file and the member.
 """
 
 from __future__ import annotations
@@ -24,19 +24,10 @@ import numpy as np
 
 from rough_map._bounded import clip
 from rough_map.errors import FileFormatError
-from rough_map.io._check import MAX_MEMBER_BYTES, MAX_POINTS
+from rough_map.limits import LIMITS
 
-__all__ = ["MAX_MEMBER_BYTES", "ZIP_ERRORS", "SafeNpz", "read_npy"]
+__all__ = ["ZIP_ERRORS", "SafeNpz", "read_npy"]
 
-_MAX_HEADER = 10_000
-"""Longest .npy header accepted, in bytes (numpy's own default limit)."""
-
-_DEFLATE_RATIO = 1100
-"""More than deflate's best ratio (1032:1): a declared size beyond it is a lie."""
-
-_MAX_ARCHIVE_RATIO = 10
-"""The arrays read from an archive may hold at most this many times its size (plus
-:data:`_ARCHIVE_SLACK`): real point clouds and worlds compress 1.5-3 times; more is a bomb."""
 
 _ARCHIVE_SLACK = 4 * 2**20
 
@@ -72,7 +63,7 @@ def read_npy(path: Path) -> np.ndarray:
             raise FileFormatError(path, "this is an .npz archive, not an .npy array")
         fh.seek(0)
         shape, fortran, dtype = _header(fh, path, None)
-        count = _check_fits(path, None, shape, dtype, size - fh.tell(), MAX_MEMBER_BYTES * 64)
+        count = _check_fits(path, None, shape, dtype, size - fh.tell(), LIMITS.archive_member * 64)
         data = np.fromfile(fh, dtype=dtype, count=count)
     if data.size != count:
         raise FileFormatError(
@@ -115,7 +106,7 @@ class SafeNpz:
                 self.path, f"not {what}: {type(err).__name__}: {clip(str(err), 80)}"
             ) from None
         self._size = size
-        self._budget = _MAX_ARCHIVE_RATIO * size + _ARCHIVE_SLACK
+        self._budget = LIMITS.archive_ratio * size + _ARCHIVE_SLACK
 
     def __enter__(self) -> SafeNpz:
         return self
@@ -150,7 +141,7 @@ class SafeNpz:
         *,
         kinds: str = "biuf",
         ndim: int | tuple[int, ...] | None = None,
-        max_bytes: int = MAX_MEMBER_BYTES,
+        max_bytes: int = LIMITS.archive_member,
         structured: bool = False,
     ) -> np.ndarray:
         """Member ``name`` (without ``.npy``) as an array.
@@ -177,12 +168,14 @@ class SafeNpz:
         info = self._infos.get(f"{name}.npy")
         if info is None:
             raise self.error(name, f"missing (not {self.what})")
-        limit = min(max_bytes, MAX_MEMBER_BYTES, self._budget)
+        limit = min(max_bytes, LIMITS.archive_member, self._budget)
         if info.compress_type == zipfile.ZIP_STORED:
             plausible = info.compress_size
         else:
-            plausible = info.compress_size * _DEFLATE_RATIO + 1024
-        if info.compress_size > self._size or info.file_size > min(limit + _MAX_HEADER, plausible):
+            plausible = info.compress_size * LIMITS.deflate_ratio + 1024
+        if info.compress_size > self._size or info.file_size > min(
+            limit + LIMITS.npy_header, plausible
+        ):
             raise self.error(
                 name,
                 f"declares {info.file_size} bytes from {info.compress_size} in a file of "
@@ -236,9 +229,9 @@ def _header(fh: IO[bytes], path: Path, field: str | None) -> tuple[tuple[int, ..
     try:
         version = fmt.read_magic(fh)
         if version == (1, 0):
-            shape, fortran, dtype = fmt.read_array_header_1_0(fh, max_header_size=_MAX_HEADER)
+            shape, fortran, dtype = fmt.read_array_header_1_0(fh, max_header_size=LIMITS.npy_header)
         elif version in ((2, 0), (3, 0)):
-            shape, fortran, dtype = fmt.read_array_header_2_0(fh, max_header_size=_MAX_HEADER)
+            shape, fortran, dtype = fmt.read_array_header_2_0(fh, max_header_size=LIMITS.npy_header)
         else:
             raise ValueError(f"unsupported .npy format version {version}")
     except (zipfile.BadZipFile, zlib.error) as err:
@@ -273,7 +266,7 @@ def _check_fits(
     if dtype.itemsize == 0 and count:
         raise FileFormatError(path, f"dtype {clip(str(dtype), 40)} has no size", field=field)
     needed = count * dtype.itemsize
-    if count > MAX_POINTS or needed > min(available, limit):
+    if count > LIMITS.points or needed > min(available, limit):
         raise FileFormatError(
             path,
             f"shape {clip(repr(shape), 40)} does not fit (truncated?): {dtype.itemsize} B items "

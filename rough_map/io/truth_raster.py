@@ -40,6 +40,7 @@ from rough_map._bounded import clip, parse_document, parse_json, read_document_t
 from rough_map._files import PathLike, atomic_output
 from rough_map.errors import FileFormatError, InputError
 from rough_map.io.truth import TiledWorld, World
+from rough_map.limits import LIMITS
 
 log = logging.getLogger(__name__)
 
@@ -72,15 +73,16 @@ def _sidecars(path: Path) -> list[Path]:
     return [stem.with_name(f"{stem.name}.classes.json"), stem.with_name(f"{stem.name}.classes.csv")]
 
 
-#: Most class names of a truth raster, and the largest class value (absolute).
-_MAX_NAMES = 65_536
+#: The largest class value of a truth raster (absolute).
 _MAX_VALUE = 2**31 - 1
 
 
 def _checked(names: dict[int, str], path: Path, field: str) -> dict[int, str]:
     """``names`` if their number and values are sane, else a FileFormatError."""
-    if len(names) > _MAX_NAMES:
-        raise FileFormatError(path, f"{len(names)} class names (most {_MAX_NAMES})", field)
+    if len(names) > LIMITS.raster_class_names:
+        raise FileFormatError(
+            path, f"{len(names)} class names (most {LIMITS.raster_class_names})", field
+        )
     if names and max(abs(v) for v in names) > _MAX_VALUE:
         raise FileFormatError(path, f"class values must be within +-{_MAX_VALUE}", field)
     return names

@@ -23,10 +23,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from rough_map._bounded import MAX_DOCUMENT_BYTES, clip, parse_json
+from rough_map._bounded import clip, parse_json
 from rough_map._files import PathLike, atomic_output
 from rough_map.errors import FileFormatError
 from rough_map.io.safe_npz import SafeNpz
+from rough_map.limits import LIMITS
 from rough_map.map.grid import GridMap
 
 __all__ = [
@@ -113,7 +114,9 @@ def read_state_meta(path: PathLike) -> dict[str, Any]:
     try:
         with zipfile.ZipFile(path) as zf:
             info = zf.getinfo("meta.json")
-            if info.file_size > min(MAX_DOCUMENT_BYTES, info.compress_size * 1100 + 1024):
+            if info.file_size > min(
+                LIMITS.document, info.compress_size * LIMITS.deflate_ratio + 1024
+            ):
                 raise FileFormatError(path, "meta.json declares too many bytes", "meta.json")
             data = zf.read(info)
     except KeyError:

@@ -4,10 +4,11 @@ one-line message naming the parameter and its unit.
 
 Budgets: the estimator's correlation between profiles costs memory and time growing as the
 square of the samples per segment (about 200 MB and several seconds at 512), so
-:func:`rough_map.psd.patch_roughness` takes at most :data:`MAX_SAMPLES` samples per segment
-when a patch has several profiles, at most :data:`MAX_PROFILE` per profile, and a patch has
-at most :data:`MAX_SAMPLES` samples per side; a plain spectrum
-(:func:`rough_map.psd.profile_psd`) takes at most :data:`MAX_CELLS` cells.
+:func:`rough_map.psd.patch_roughness` takes at most ``LIMITS.patch_samples`` samples per
+segment when a patch has several profiles, at most ``LIMITS.profile_samples`` per profile, and
+a patch has at most ``LIMITS.patch_samples`` samples per side; a plain spectrum
+(:func:`rough_map.psd.profile_psd`) takes at most ``LIMITS.grid_cells`` cells
+(:data:`rough_map.limits.LIMITS`).
 """
 
 from __future__ import annotations
@@ -22,23 +23,11 @@ import numpy as np
 from rough_map.errors import InputError
 
 __all__ = [
-    "MAX_CELLS",
-    "MAX_PROFILE",
-    "MAX_SAMPLES",
     "check_bool",
     "check_choice",
     "check_int",
     "check_real",
 ]
-
-MAX_SAMPLES = 512
-"""Most samples per segment the estimator fits when a patch has several profiles (and per
-side of a patch): the correlation between profiles costs memory and time growing as the
-square (about 200 MB and several seconds at 512)."""
-MAX_PROFILE = 4096
-"""Most samples per profile the estimator fits (its tables grow linearly: ~250 MB here)."""
-MAX_CELLS = 2**24
-"""Most cells of a height grid (128 MB of float64) a spectrum is computed over."""
 
 
 def _show(value: Any) -> str:

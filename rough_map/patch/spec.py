@@ -13,7 +13,8 @@ from typing import Any
 import numpy as np
 
 from rough_map.errors import InputError, PatchError
-from rough_map.patch._params import MAX_SAMPLES, check_choice, check_int, check_real
+from rough_map.limits import LIMITS
+from rough_map.patch._params import check_choice, check_int, check_real
 
 log = logging.getLogger(__name__)
 
@@ -60,22 +61,22 @@ class PatchSpec:
             check_real("row_spacing", self.row_spacing, "m", low=0.0, high=1e3, low_open=True)
             if float(self.row_spacing) == float(self.spacing):
                 object.__setattr__(self, "row_spacing", None)  # square cells: one spelling
-            elif not 3 <= self.rows <= MAX_SAMPLES:
+            elif not 3 <= self.rows <= LIMITS.patch_samples:
                 raise InputError(
                     f"size / row_spacing gives {self.size / self.row_spacing:.6g} profiles "
                     f"(size={self.size:g} m, row_spacing={self.row_spacing:g} m); need 3 "
-                    f"to {MAX_SAMPLES}"
+                    f"to {LIMITS.patch_samples}"
                 )
         if self.n < 8:
             raise InputError(
                 f"size / spacing gives {self.n} samples per profile; need at least 8 "
                 f"(size={self.size} m, spacing={self.spacing} m)"
             )
-        if self.n > MAX_SAMPLES:
+        if self.n > LIMITS.patch_samples:
             raise InputError(
                 f"size / spacing gives {self.size / self.spacing:.6g} samples per profile "
                 f"(size={self.size:g} m, "
-                f"spacing={self.spacing:g} m); at most {MAX_SAMPLES}: use a larger spacing"
+                f"spacing={self.spacing:g} m); at most {LIMITS.patch_samples}: use a larger spacing"
             )
 
     @property

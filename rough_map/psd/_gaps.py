@@ -9,7 +9,8 @@ from typing import Any
 import numpy as np
 
 from rough_map.errors import InputError
-from rough_map.patch._params import MAX_CELLS, check_bool, check_real
+from rough_map.limits import LIMITS
+from rough_map.patch._params import check_bool, check_real
 
 
 def check_spacing(spacing: Any) -> float:
@@ -41,8 +42,10 @@ def check_heights(heights: Any, min_samples: int = 8) -> np.ndarray:
         raise InputError(
             f"profiles need at least {min_samples} samples, got {h.shape[1]} (shape {h.shape})"
         )
-    if h.size > MAX_CELLS:
-        raise InputError(f"heights has {h.size} cells (shape {h.shape}); at most {MAX_CELLS}")
+    if h.size > LIMITS.grid_cells:
+        raise InputError(
+            f"heights has {h.size} cells (shape {h.shape}); at most {LIMITS.grid_cells}"
+        )
     # two passes (fmax and fmin skip NaN; all NaN gives NaN), where isinf, isnan, abs and
     # nanmax took four
     flat = h.reshape(-1)
@@ -109,8 +112,10 @@ def fill_gaps(
         raise InputError(
             f"heights must be a non-empty 2-D grid (profiles x samples), got {h.shape}"
         )
-    if h.size > MAX_CELLS:
-        raise InputError(f"heights has {h.size} cells (shape {h.shape}); at most {MAX_CELLS}")
+    if h.size > LIMITS.grid_cells:
+        raise InputError(
+            f"heights has {h.size} cells (shape {h.shape}); at most {LIMITS.grid_cells}"
+        )
     spacing = check_spacing(spacing)
     check_real("max_gap", max_gap, "m", low=0.0, high=1e6)
     check_real("max_gap_fraction", max_gap_fraction, "", low=0.0, high=1.0)

@@ -7,8 +7,9 @@ from dataclasses import dataclass
 from numbers import Real
 
 from rough_map.errors import InputError
+from rough_map.limits import LIMITS
 from rough_map.patch import METHODS
-from rough_map.patch._params import MAX_CELLS, check_bool, check_choice, check_int, check_real
+from rough_map.patch._params import check_bool, check_choice, check_int, check_real
 from rough_map.psd._leakage import GRIDDINGS
 from rough_map.psd._spectra import check_window
 
@@ -35,8 +36,10 @@ class Options:
         check_window(self.window)
         check_choice("method", self.method, METHODS)
         check_choice("gridding", self.gridding, GRIDDINGS)
-        check_int("nperseg", self.nperseg, low=8, high=MAX_CELLS, unit="samples", none=True)
-        check_int("noverlap", self.noverlap, low=0, high=MAX_CELLS, unit="samples", none=True)
+        check_int("nperseg", self.nperseg, low=8, high=LIMITS.grid_cells, unit="samples", none=True)
+        check_int(
+            "noverlap", self.noverlap, low=0, high=LIMITS.grid_cells, unit="samples", none=True
+        )
         if self.nperseg is not None and self.noverlap is not None:
             if self.noverlap >= self.nperseg:
                 raise InputError(
@@ -50,7 +53,7 @@ class Options:
         check_real(
             "row_spacing", self.row_spacing, "m", low=0.0, high=1e3, low_open=True, none=True
         )
-        check_int("min_profiles", self.min_profiles, low=1, high=MAX_CELLS, unit="profiles")
+        check_int("min_profiles", self.min_profiles, low=1, high=LIMITS.grid_cells, unit="profiles")
         w = self.waviness
         if w is not None and not (
             isinstance(w, Real) and not isinstance(w, bool) and math.isfinite(w) and -6 < w < 0

@@ -13,7 +13,8 @@ import numpy as np
 
 from rough_map._files import atomic_output
 from rough_map.errors import InputError
-from rough_map.patch._params import MAX_SAMPLES, check_int
+from rough_map.limits import LIMITS
+from rough_map.patch._params import check_int
 from rough_map.psd._lateral import compute_lateral_tables
 from rough_map.psd._leakage import GRIDDINGS, SHIPPED_TABLES, compute_leakage_table
 
@@ -40,7 +41,7 @@ def write_leakage_tables(
     if isinstance(sizes, str | bytes) or not isinstance(sizes, Sequence) or len(sizes) > 64:
         raise InputError("sizes must be a sequence of at most 64 profile lengths (samples)")
     for n in sizes:
-        check_int("sizes[i]", n, low=8, high=MAX_SAMPLES, unit="samples")
+        check_int("sizes[i]", n, low=8, high=LIMITS.patch_samples, unit="samples")
     sizes = [int(n) for n in sizes]
     try:
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -12,7 +12,8 @@ import numpy as np
 import scipy.fft
 
 from rough_map.errors import InputError
-from rough_map.patch._params import MAX_CELLS, check_int
+from rough_map.limits import LIMITS
+from rough_map.patch._params import check_int
 from rough_map.psd._cache import table_cache
 
 #: Windows the estimator is known to work with (any scipy window name that needs no
@@ -95,7 +96,7 @@ def log_bias(window: str, nperseg: int, noverlap: int, n: int) -> float:
         ``8 <= nperseg <= n`` and ``0 <= noverlap < nperseg``.
     """
     check_window(window)
-    check_int("n", n, low=8, high=MAX_CELLS, unit="samples")
+    check_int("n", n, low=8, high=LIMITS.grid_cells, unit="samples")
     check_int("nperseg", nperseg, low=8, high=int(n), unit="samples")
     check_int("noverlap", noverlap, low=0, high=int(nperseg) - 1, unit="samples")
     return _log_bias(window, int(nperseg), int(noverlap), int(n))

@@ -15,19 +15,14 @@ from typing import Any
 import numpy as np
 
 from rough_map.errors import InputError, PatchError
-from rough_map.patch._params import MAX_CELLS, MAX_PROFILE, MAX_SAMPLES, check_int
+from rough_map.limits import LIMITS
+from rough_map.patch._params import check_int
 from rough_map.psd._fit import Spectra, fit
 from rough_map.psd._gaps import as_heights, check_heights, check_spacing, fill_gaps
 from rough_map.psd._noise import check_floor, gap_statistics
 from rough_map.psd._options import Options, check_window
 from rough_map.psd._result import PatchRoughness
-from rough_map.psd._spectra import (
-    adjacent_cross,
-    detrended_dft,
-    detrended_rms,
-    power,
-    spectrum,
-)
+from rough_map.psd._spectra import adjacent_cross, detrended_dft, detrended_rms, power, spectrum
 
 log = logging.getLogger(__name__)
 
@@ -288,20 +283,22 @@ def _checked_stack(arr: np.ndarray, opt: Options) -> np.ndarray:
     if arr.shape[-1] < 8:
         check_heights(arr.reshape(-1, arr.shape[-1]))  # raises: too few samples
     n = arr.shape[-1]
-    if n > MAX_PROFILE:
+    if n > LIMITS.profile_samples:
         raise InputError(
-            f"heights has {n} samples per profile; the estimator takes at most {MAX_PROFILE}: "
-            "use a coarser spacing (m)"
+            f"heights has {n} samples per profile; the estimator takes at most "
+            f"{LIMITS.profile_samples}: use a coarser spacing (m)"
         )
     seg = n if opt.nperseg is None else min(opt.nperseg, n)
-    if arr.shape[1] > 1 and seg > MAX_SAMPLES:
+    if arr.shape[1] > 1 and seg > LIMITS.patch_samples:
         raise InputError(
             f"heights has {n} samples per profile (segment) and {arr.shape[1]} profiles; the "
-            f"estimator takes at most {MAX_SAMPLES} per segment when it correlates profiles "
-            "(its tables grow as the square): use a coarser spacing (m) or nperseg"
+            f"estimator takes at most {LIMITS.patch_samples} per segment when it correlates "
+            "profiles (its tables grow as the square): use a coarser spacing (m) or nperseg"
         )
-    if arr[0].size > MAX_CELLS:
-        raise InputError(f"a patch of {arr[0].size} cells (shape {arr.shape}); at most {MAX_CELLS}")
+    if arr[0].size > LIMITS.grid_cells:
+        raise InputError(
+            f"a patch of {arr[0].size} cells (shape {arr.shape}); at most {LIMITS.grid_cells}"
+        )
     if arr.shape[1] < opt.min_profiles:
         raise PatchError(f"the patch has {arr.shape[1]} profiles, need at least {opt.min_profiles}")
     return arr
@@ -480,8 +477,8 @@ def profile_psd(
     """
     spacing = check_spacing(spacing)
     check_window(window)
-    check_int("nperseg", nperseg, low=8, high=MAX_CELLS, unit="samples", none=True)
-    check_int("noverlap", noverlap, low=0, high=MAX_CELLS, unit="samples", none=True)
+    check_int("nperseg", nperseg, low=8, high=LIMITS.grid_cells, unit="samples", none=True)
+    check_int("noverlap", noverlap, low=0, high=LIMITS.grid_cells, unit="samples", none=True)
     h = check_heights(heights)
     one = h.shape[0] == 1 and np.ndim(heights) == 1
     filled, keep = fill_gaps(h, spacing, max_gap=max_gap, max_gap_fraction=max_gap_fraction)

@@ -19,20 +19,7 @@ from typing import Any
 
 from rough_map._bounded import short
 from rough_map.errors import FileFormatError
-
-#: Largest ``metadata.yaml`` read, bytes (a real one holds about 1 kB per topic; ruamel, which
-#: rosbags and this module parse it with, takes about 6 s of CPU per MB).
-MAX_METADATA_BYTES = 256 << 10
-#: Deepest bracket nesting accepted in ``metadata.yaml`` (rosbags' own files use 1).
-MAX_YAML_DEPTH = 32
-#: Most storage files a ROS 2 bag may list.
-MAX_STORAGE_FILES = 1024
-#: Most topics a ROS 2 bag's metadata may list.
-MAX_TOPICS = 10_000
-#: Longest string (topic, type, file name...) in ``metadata.yaml``, characters.
-MAX_NAME = 4096
-#: Largest decompressed chunk accepted, bytes (rosbag writers use 768 KiB to 4 MiB).
-MAX_CHUNK = 256 << 20
+from rough_map.limits import LIMITS
 
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 _ROS1_MAGIC = b"#ROSBAG V2.0\n"
@@ -91,8 +78,8 @@ def check_metadata(folder: Path) -> tuple[str, list[Path]]:
     path = folder / "metadata.yaml"
     if not path.is_file():
         raise FileFormatError(folder, "not a bag: no metadata.yaml in the folder")
-    if path.stat().st_size > MAX_METADATA_BYTES:
-        raise FileFormatError(path, f"larger than {MAX_METADATA_BYTES} bytes")
+    if path.stat().st_size > LIMITS.bag_metadata:
+        raise FileFormatError(path, f"larger than {LIMITS.bag_metadata} bytes")
     try:
         text = path.read_bytes().decode("utf-8")
     except (OSError, UnicodeDecodeError) as err:
@@ -139,16 +126,16 @@ def _metadata(name: str, text: str) -> tuple[str, tuple[Any, ...]]:
         _nanoseconds(path, _get(path, info, key, dict, where), sub, f"{where}{key}.")
     _nanoseconds(path, info, "message_count", where)
     files = info.get("files", [])
-    if not isinstance(files, list) or len(files) > MAX_STORAGE_FILES:
+    if not isinstance(files, list) or len(files) > LIMITS.bag_storage_files:
         raise FileFormatError(
-            path, f"not a list of at most {MAX_STORAGE_FILES} entries", where + "files"
+            path, f"not a list of at most {LIMITS.bag_storage_files} entries", where + "files"
         )
     for i, entry in enumerate(files):
         at = f"{where}files[{i}]."
         if not isinstance(entry, dict):
             raise FileFormatError(path, "not a mapping", at[:-1])
         name = _get(path, entry, "path", str, at)
-        if len(name) > MAX_NAME:
+        if len(name) > LIMITS.bag_name:
             raise FileFormatError(path, "too long", at + "path")
         for key, sub_key in (
             ("duration", "nanoseconds"),
@@ -159,16 +146,16 @@ def _metadata(name: str, text: str) -> tuple[str, tuple[Any, ...]]:
         if "message_count" in entry:
             _nanoseconds(path, entry, "message_count", at)
     names = _get(path, info, "relative_file_paths", list, where)
-    if not 1 <= len(names) <= MAX_STORAGE_FILES:
+    if not 1 <= len(names) <= LIMITS.bag_storage_files:
         raise FileFormatError(
             path,
-            f"{len(names)} files listed (1 to {MAX_STORAGE_FILES} accepted)",
+            f"{len(names)} files listed (1 to {LIMITS.bag_storage_files} accepted)",
             where + "relative_file_paths",
         )
     topics = _get(path, info, "topics_with_message_count", list, where)
-    if len(topics) > MAX_TOPICS:
+    if len(topics) > LIMITS.bag_topics:
         raise FileFormatError(
-            path, f"{len(topics)} topics (at most {MAX_TOPICS})", where + "topics"
+            path, f"{len(topics)} topics (at most {LIMITS.bag_topics})", where + "topics"
         )
     for i, topic in enumerate(topics):
         _check_topic(path, topic, f"{where}topics_with_message_count[{i}].")
@@ -176,8 +163,8 @@ def _metadata(name: str, text: str) -> tuple[str, tuple[Any, ...]]:
 
 
 def _check_depth(path: Path, text: str) -> None:
-    """Refuse flow collections nested deeper than :data:`MAX_YAML_DEPTH` (a cheap scan that
-    counts brackets anywhere, quoted or not) and block nesting deeper than the same bound
+    """Refuse flow collections nested deeper than ``LIMITS.bag_metadata_depth`` (a cheap
+    scan that counts brackets anywhere, quoted or not) and block nesting deeper than the same bound
     (indentation and "- " markers of a line)."""
     depth = deepest = 0
     for char in text:
@@ -186,12 +173,12 @@ def _check_depth(path: Path, text: str) -> None:
             deepest = max(deepest, depth)
         elif char in "]}":
             depth -= 1
-    if deepest > MAX_YAML_DEPTH:
-        raise FileFormatError(path, f"nested deeper than {MAX_YAML_DEPTH} levels")
+    if deepest > LIMITS.bag_metadata_depth:
+        raise FileFormatError(path, f"nested deeper than {LIMITS.bag_metadata_depth} levels")
     for line in text.splitlines():
         stripped = line.lstrip(" -?:")
-        if len(line) - len(stripped) > 4 * MAX_YAML_DEPTH:
-            raise FileFormatError(path, f"nested deeper than {MAX_YAML_DEPTH} levels")
+        if len(line) - len(stripped) > 4 * LIMITS.bag_metadata_depth:
+            raise FileFormatError(path, f"nested deeper than {LIMITS.bag_metadata_depth} levels")
 
 
 def _get(path: Path, mapping: Any, key: str, kind: type, where: str) -> Any:
@@ -205,8 +192,8 @@ def _get(path: Path, mapping: Any, key: str, kind: type, where: str) -> Any:
         raise FileFormatError(
             path, f"expected {kind.__name__}, got {type(value).__name__}", where + key
         )
-    if isinstance(value, str) and len(value) > MAX_NAME:
-        raise FileFormatError(path, f"longer than {MAX_NAME} characters", where + key)
+    if isinstance(value, str) and len(value) > LIMITS.bag_name:
+        raise FileFormatError(path, f"longer than {LIMITS.bag_name} characters", where + key)
     return value
 
 
@@ -228,7 +215,7 @@ def _storage_files(path: Path, folder: Path, names: tuple[Any, ...]) -> list[Pat
     files = []
     seen: set[str] = set()
     for i, name in enumerate(names):
-        if not isinstance(name, str) or not 0 < len(name) <= MAX_NAME:
+        if not isinstance(name, str) or not 0 < len(name) <= LIMITS.bag_name:
             raise FileFormatError(path, f"not a file name: {short(name)}", f"{field}[{i}]")
         pure = PurePath(name)
         if pure.is_absolute() or ".." in pure.parts:
@@ -259,7 +246,7 @@ def _check_topic(path: Path, topic: Any, where: str) -> None:
         _get(path, meta, "type_description_hash", str, where)
     qos = meta.get("offered_qos_profiles", [])
     if isinstance(qos, str):
-        if len(qos) > MAX_NAME * 16:
+        if len(qos) > LIMITS.bag_name * 16:
             raise FileFormatError(path, "too long", where + "offered_qos_profiles")
         _check_depth(path, qos)
     elif not isinstance(qos, list) or len(qos) > 1024 or not all(isinstance(q, dict) for q in qos):
@@ -290,10 +277,10 @@ def _corrupt(path: Path, message: str, field: str | None = None) -> FileFormatEr
 
 def _bounded_decompress(path: Path, data: bytes, compression: str, size: int, where: str) -> None:
     """Check that compressed ``data`` gives exactly ``size`` bytes (at most
-    :data:`MAX_CHUNK`), decompressing it in steps of 1 MiB that are dropped at once: a
+    ``LIMITS.bag_chunk``), decompressing it in steps of 1 MiB that are dropped at once: a
     decompression bomb costs time bounded by ``size``, and no memory."""
-    if size > MAX_CHUNK:
-        raise _corrupt(path, f"chunk declares {size} B (at most {MAX_CHUNK})", where)
+    if size > LIMITS.bag_chunk:
+        raise _corrupt(path, f"chunk declares {size} B (at most {LIMITS.bag_chunk})", where)
     try:
         total = _decompressed_size(data, compression, size)
     except Exception as err:  # each library has its own error types
