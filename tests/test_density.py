@@ -187,7 +187,7 @@ def test_dense_clouds_read_like_the_exact_patch(w, per_cell):
     At 4 points per cell the sensor noise (0.3 mm / 2) buries the top of the band of steep
     ground (w -2.8) and 2 % of the cells are empty: the fit runs on into the noise with
     weights that follow its variance, and the floor and the terrain's power both allow
-    for the cells the gap policy filled (``rough_map.psd._noise.gap_filled_floor``).
+    for the cells the gap policy filled (``rough_map.psd._corrections.gap_filled_floor``).
     """
     e = errors(w, per_cell)
     assert abs(np.median(e[:, 0])) <= 0.15 and abs(np.median(e[:, 1])) <= 0.05

@@ -35,7 +35,7 @@ from test_real_data import _texture_scan
 
 from rough_map.patch import PatchSpec, spacing_ladder
 from rough_map.psd import patch_roughness
-from rough_map.psd._lateral import (
+from rough_map.psd._corrections import (
     A_NODES,
     lateral_log_gain,
     lateral_scale,

@@ -9,8 +9,8 @@ from scipy import signal
 
 from rough_map import iso8608, psd
 from rough_map.errors import InputError, PatchError
-from rough_map.psd import _leakage, _regression, _spectra
-from rough_map.psd._lateral import compute_lateral_tables
+from rough_map.psd import _corrections, _fit, _spectra
+from rough_map.psd._corrections import compute_lateral_tables
 
 B = 0.008
 N = 112
@@ -272,10 +272,10 @@ def test_bad_options():
 
 
 def test_shipped_tables_are_up_to_date():
-    with np.load(_leakage.SHIPPED_TABLES) as data:
+    with np.load(_corrections.SHIPPED_TABLES) as data:
         for g in psd.GRIDDINGS:
             np.testing.assert_allclose(
-                data[f"hann_112_{g}"], _leakage.compute_leakage_table(112, "hann", g), atol=1e-9
+                data[f"hann_112_{g}"], _corrections.compute_leakage_table(112, "hann", g), atol=1e-9
             )
         for name, table in zip(("ratio", "coherence"), compute_lateral_tables(112), strict=True):
             np.testing.assert_allclose(data[f"lateral_{name}_112"], table, atol=1e-9)
@@ -310,8 +310,8 @@ def test_cached_plans_cannot_be_changed():
     h = iso8608.synthesize_surface((N, N), B, "E", -2.3, seed=4)
     before = psd.patch_roughness(h, B)
     win, basis, _ = _spectra.hann_plan(N, "hann")
-    plan = _regression.fit_plan(N // 2, N, "unbiased", B, 1.0, "hann", "point")
-    arrays = [win, basis, _leakage.leakage_table(N, "hann", "point"), _leakage.W_GRID]
+    plan = _fit.fit_plan(N // 2, N, "unbiased", B, 1.0, "hann", "point")
+    arrays = [win, basis, _corrections.leakage_table(N, "hann", "point"), _corrections.W_GRID]
     arrays += [getattr(plan, f) for f in ("mask", "x", "xc", "avg", "proj", "leak_x", "leak_a")]
     for a in arrays:
         assert not a.flags.writeable
@@ -340,10 +340,38 @@ def test_each_patch_takes_its_own_floor_or_one_for_all() -> None:
     assert out[0].noise_psd == 1e-9 and out[0].noise_subtracted
 
 
+def test_one_options_object_for_every_entry_point() -> None:
+    """The four entry points take the same :class:`rough_map.psd.Options`, whole or as
+    keyword changes of it, and read a patch alike whichever way it is given."""
+    h = iso8608.synthesize_surface((24, 112), B, 64e-6, -2.3, seed=4)
+    opts = psd.Options(method="paper", window="hamming")
+
+    def key(r: psd.PatchRoughness | PatchError) -> tuple[float, ...]:
+        assert isinstance(r, psd.PatchRoughness)
+        return (r.R, r.w, r.se_lnR, r.se_w)
+
+    whole = key(psd.patch_roughness(h, B, opts))
+    assert whole == key(psd.patch_roughness(h, B, method="paper", window="hamming"))
+    assert whole == key(psd.patch_roughness(h, B, psd.Options(method="paper"), window="hamming"))
+    assert whole == key(psd.patch_roughness_batch(h[None], B, opts)[0])
+    assert whole == key(psd.patch_roughness_each(h[None], B, opts)[0])
+    assert whole != key(psd.patch_roughness(h, B))
+    _, p = psd.profile_psd(h, B, opts)
+    assert np.array_equal(p, psd.profile_psd(h, B, window="hamming")[1])
+    assert psd.Options() == psd.Options.of(None, {}, "f")
+    for f in (psd.patch_roughness, psd.profile_psd):
+        with pytest.raises(psd.UnknownOptionError, match=rf"{f.__name__}\(\) got unexpected"):
+            f(h, B, windows="hann")
+    with pytest.raises(InputError, match=r"options must be a rough_map.psd.Options"):
+        psd.patch_roughness(h, B, {"method": "paper"})  # type: ignore[arg-type]
+    with pytest.raises(InputError, match="method"):
+        psd.patch_roughness(h, B, opts, method="exact")
+
+
 def test_fill_gaps_in_place_fills_the_array_given_and_checks_heights_as_before():
     """``copy=False`` (the estimator's own stacks) gives the copy's result in the array."""
     from rough_map.psd import fill_gaps
-    from rough_map.psd._gaps import check_heights
+    from rough_map.psd._spectra import check_heights
 
     rng = np.random.default_rng(2)
     h = rng.normal(0.0, 1e-3, (6, 64))
@@ -388,7 +416,7 @@ def test_gap_filled_floor_is_the_spectrum_of_filled_noise(share, rtol):
     ``N g + f (1 - f) v B / pi`` (g the terrain's gain), not the flat ``N``. (The model
     takes the filled cells as independent; only isolated ones are filled here, which
     leaves a few per cent at 12 % filled.)"""
-    from rough_map.psd._noise import gap_filled_floor, gap_statistics
+    from rough_map.psd._corrections import gap_filled_floor, gap_statistics
 
     filled, pick = _filled_white(share, seed=int(share * 100))
     omega, p, _ = _spectra.periodogram(filled, B, "hann")
@@ -411,7 +439,7 @@ def test_gap_filled_floor_is_the_spectrum_of_filled_noise(share, rtol):
 
 
 def test_gap_statistics_of_a_grid_without_gaps_or_of_a_ramp():
-    from rough_map.psd._noise import gap_filled_floor, gap_statistics
+    from rough_map.psd._corrections import gap_filled_floor, gap_statistics
 
     ramp = np.tile(np.linspace(0.0, 0.1, 50), (4, 1))
     none = np.zeros(ramp.shape, dtype=bool)

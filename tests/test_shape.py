@@ -1,7 +1,7 @@
 """Does a reading follow its power law, and does it describe its patch? (issue 29)
 
 ``centre_psd``, ``band_rms``, ``rms_ratio`` and ``curvature_z`` of
-:class:`rough_map.psd.PatchRoughness` (:mod:`rough_map.psd._shape`), on power-law patches
+:class:`rough_map.psd.PatchRoughness` (:mod:`rough_map.psd._fit`), on power-law patches
 (known answers) and on spectra that bend by a known amount.
 """
 

@@ -41,6 +41,10 @@ README = ROOT / "README.md"
 TIMING = re.compile(r"\d+(?:\.\d+)?\s*ms\b")
 TABLE_START = re.compile(r"<!-- readme_check: (\S+) -->")
 TABLE_END = "<!-- /readme_check -->"
+#: A block whose numbers depend on the CPU (OpenCV dispatches SSE, AVX2 or AVX-512 code,
+#: whose sub-pixel disparities differ in their last bits) carries this line above its fence:
+#: its numbers are compared within the relative tolerance given.
+BLOCK_RTOL = re.compile(r"<!-- readme_check rtol=(\S+) -->")
 
 
 @dataclass
@@ -54,6 +58,7 @@ class Block:
     start: int  # line index of the first line inside the fence
     end: int  # line index of the closing fence
     steps: list[Step]
+    rtol: float = 0.0  # the block's own tolerance (BLOCK_RTOL)
 
 
 def transcripts(lines: list[str]) -> list[Block]:
@@ -73,7 +78,8 @@ def transcripts(lines: list[str]) -> list[Block]:
                         steps.append(Step(b[2:].strip()))
                     elif steps:
                         steps[-1].expected.append(b)
-                blocks.append(Block(i + 1, j, steps))
+                m = BLOCK_RTOL.search(lines[i - 1]) if i else None
+                blocks.append(Block(i + 1, j, steps, float(m.group(1)) if m else 0.0))
             i = j
         i += 1
     return blocks
@@ -160,7 +166,7 @@ def check_transcripts(
             log(f"$ {step.command}")
             code, out = run_step(step, scratch, env)
             body.append("$ " + step.command)
-            if matches(step.expected, out, rtol):
+            if matches(step.expected, out, max(rtol, block.rtol)):
                 body.extend(step.expected)
                 continue
             ok = False

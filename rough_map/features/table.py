@@ -38,7 +38,7 @@ SE_COLUMNS = ("se_lnR", "se_w")
 #: along; NaN when not read), the wavenumber in rad/m up to which the ground stays above
 #: the sensor's noise floor, the band's rms height in m and the fitted PSD at the band's
 #: log centre (roughness without extrapolation), the fit's rms over the band's, and the
-#: curvature of the log spectrum in its own standard errors (:mod:`rough_map.psd._shape`).
+#: curvature of the log spectrum in its own standard errors (:mod:`rough_map.psd._fit`).
 READING_COLUMNS = (
     "lateral_scale",
     "omega_noise",

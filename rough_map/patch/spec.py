@@ -278,7 +278,7 @@ def pooled_rows(n_points: int, spec: PatchSpec, lateral_scale: float) -> PatchSp
     small.
     Averaging its points over a cell ``k`` times wider than long then loses little of the
     band along the profiles, and the estimator corrects for what it loses (the lateral box
-    of a stretched surface, :mod:`rough_map.psd._lateral`). So a cloud too sparse for the
+    of a stretched surface, :mod:`rough_map.psd._corrections`). So a cloud too sparse for the
     step ``spec.spacing`` keeps that step, and with it the band up to ``pi / B``, instead
     of the coarser square grid of :func:`auto_spacing`, whose band ends lower.
 

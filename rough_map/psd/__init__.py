@@ -42,7 +42,7 @@ gap policy filled hold their neighbours' mean: for a share ``f`` of filled cells
 terrain's power is multiplied by ``(1 + f (cos(Omega B) - 1))^2`` (1 - 4 f at ``pi / B``)
 and the floor becomes that times ``N``, plus the white power of what interpolation misses
 (``f (1 - f)`` times its mean square, measured on the patch, times ``B / pi``); both are
-corrected (:func:`rough_map.psd._noise.gap_filled_floor`). It matters when the floor
+corrected (:func:`rough_map.psd._corrections.gap_filled_floor`). It matters when the floor
 reaches a few per cent of the terrain's power at ``pi / B``: smooth surfaces (ISO A-C) seen
 with stereo, or sparse clouds with only a few points per cell.
 
@@ -67,34 +67,33 @@ chunk at a time, read exactly as one frame measured alone (the online mapper).
 
 Layout
 ------
-:mod:`rough_map.psd.estimator` holds the public functions; the private modules hold the
-parts: ``_gaps`` (input checks, gap policy), ``_spectra`` (periodogram, Welch, log bias),
-``_leakage`` (the detrend/window/cell-mean tables), ``_lateral`` (the lateral scale of
-cell means, read from adjacent rows), ``_shipped`` (writes the tables the package ships),
-``_regression`` (the line fit as
-projections), ``_noise`` (the noise floor), ``_fit`` (the fit with the unbiased
-corrections), ``_uncertainty`` (the standard errors ``se_lnR``, ``se_w``, with the
-correlation between profiles) and ``_result`` (:class:`PatchRoughness`).
+:mod:`rough_map.psd.estimator` holds the public functions and :mod:`rough_map.psd.options`
+their one :class:`Options`; the private modules hold the concepts: ``_spectra`` (input
+checks, gap policy, periodogram, Welch, log bias, the table cache), ``_corrections`` (the
+detrend/window/cell-mean leakage tables, the lateral scale of cell means, the noise floor,
+the shipped tables), ``_fit`` (the line fit with the unbiased corrections, the checks of the
+power law and :class:`PatchRoughness`) and ``_uncertainty`` (the standard errors ``se_lnR``,
+``se_w``, with the correlation between profiles).
 """
 
 from rough_map.patch import METHODS
-from rough_map.psd._gaps import fill_gaps
-from rough_map.psd._lateral import grid_log_gain
-from rough_map.psd._leakage import GRIDDINGS
-from rough_map.psd._result import PatchRoughness
-from rough_map.psd._shipped import write_leakage_tables
-from rough_map.psd._spectra import log_bias
+from rough_map.psd._corrections import GRIDDINGS, grid_log_gain, write_leakage_tables
+from rough_map.psd._fit import PatchRoughness
+from rough_map.psd._spectra import fill_gaps, log_bias
 from rough_map.psd.estimator import (
     patch_roughness,
     patch_roughness_batch,
     patch_roughness_each,
     profile_psd,
 )
+from rough_map.psd.options import Options, UnknownOptionError
 
 __all__ = [
     "GRIDDINGS",
     "METHODS",
+    "Options",
     "PatchRoughness",
+    "UnknownOptionError",
     "fill_gaps",
     "grid_log_gain",
     "log_bias",

@@ -29,11 +29,11 @@ or the spacing:
   lateral coherence of the surface at lag ``j``, ``2^(1-mu) / Gamma(mu) t^mu K_mu(t)``
   with ``t = nu j`` and ``mu = -w / 2`` (the Fourier transform of ``(1 + u^2)^((w - 1) / 2)``,
   see :func:`rough_map.iso8608.surface_constant`); with ``gridding="cell_mean"`` the
-  profile spectrum takes the cell-mean gain of :func:`rough_map.psd._leakage._cell_mean_gain`;
+  profile spectrum takes the cell-mean gain of :func:`rough_map.psd._corrections._cell_mean_gain`;
 * the logs of two periodogram ordinates with correlation ``rho`` have the covariance
   ``Li2(|rho|^2)`` (``pi^2 / 6`` at ``rho = 1``); a Welch ordinate of ``2 a`` equivalent
   degrees of freedom has ``sum_n |rho|^(2n) Gamma(n) Gamma(a) / (n Gamma(a + n))``;
-* ``b_i`` and ``w_i`` are linear in the log ordinates (:mod:`rough_map.psd._regression`),
+* ``b_i`` and ``w_i`` are linear in the log ordinates (:mod:`rough_map.psd._fit`),
   so their lag covariances are quadratic forms of those log covariances.
 
 The tables (nine waviness nodes from -4.5 to -0.5, lags up to two profile lengths,
@@ -45,7 +45,7 @@ On patches cut from continuous isotropic surfaces (``tests/surfaces.py``, w from
 -2.8, ISO A-D) +-1 se covers the generating ln R and w 65-72 % of the time and +-1.96 se
 93-97 % (``tests/test_uncertainty.py``).
 
-The ground's lateral scale ``a`` (:mod:`rough_map.psd._lateral`: the isotropic surface
+The ground's lateral scale ``a`` (:mod:`rough_map.psd._corrections`: the isotropic surface
 stretched across the profiles, ``a = 0`` the same at every row) enters the lateral
 coherence as ``t = nu j a``; the tables are computed at the scale nodes ``A_NODES`` that
 the patches need and the design effect is linear between them. Patches whose scale is
@@ -64,23 +64,17 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from rough_map.psd._cache import table_cache
-from rough_map.psd._leakage import _cell_mean_gain
-from rough_map.psd._options import Options
-from rough_map.psd._regression import Projections
-from rough_map.psd._spectra import frozen, hann_plan
+from rough_map.psd._corrections import _TRI_S, _TRI_W, A_NODES, W_NODES, _cell_mean_gain, _matern
+from rough_map.psd._spectra import frozen, hann_plan, table_cache
 
-#: Waviness nodes of the tables (dimensionless); the design effect is linear between them.
-W_NODES = np.linspace(-4.5, -0.5, 9)
-frozen(W_NODES)
-#: Lateral scales of the tables here and in :mod:`rough_map.psd._lateral`: ``a = 0`` is
-#: ground that is the same across the patch, ``a = 1`` isotropic ground.
-A_NODES = np.array([0.0, 0.1, 0.2, 0.35, 0.5, 0.7, 1.0, 1.4, 2.0, 3.0, 5.0])
-frozen(A_NODES)
+if TYPE_CHECKING:
+    from rough_map.psd._fit import Projections
+    from rough_map.psd.options import Options
+
 
 #: Ordinates on either side whose log covariance is kept (the Hann window correlates
 #: neighbours; beyond a few bins apart the log covariance is below 1e-3).
@@ -121,25 +115,6 @@ def _kernels(seg_n: int, window: str) -> tuple[np.ndarray, np.ndarray, np.ndarra
     return nu, dnu, resp
 
 
-def _matern(t: np.ndarray, w: float) -> np.ndarray:
-    """Lateral coherence ``2^(1-mu) / Gamma(mu) t^mu K_mu(t)``, ``mu = -w / 2``, of the
-    isotropic surface whose profiles have PSD ``Omega^w`` (``t`` = wavenumber x lag, >= 0),
-    interpolated in a table (log-spaced in t, relative error ~1e-5)."""
-    from scipy import special  # imported on first use: it costs a worker 70 ms
-
-    mu = -w / 2.0
-    grid = np.concatenate([[0.0], np.geomspace(1e-7, max(float(t.max()), 1.0) * 1.01, 3000)])
-    table = np.ones_like(grid)
-    table[1:] = 2.0 ** (1.0 - mu) / math.gamma(mu) * grid[1:] ** mu * special.kv(mu, grid[1:])
-    return np.interp(t, grid, np.nan_to_num(table))
-
-
-#: Gauss-Legendre nodes on [0, 1] and their weights times the triangle (1 - s).
-_GL_S, _GL_W = np.polynomial.legendre.leggauss(10)
-_TRI_S = np.concatenate([(_GL_S + 1) / 2, -(_GL_S + 1) / 2])
-_TRI_W = np.concatenate([_GL_W / 2, _GL_W / 2]) * (1 - np.abs(_TRI_S))
-
-
 def _lateral_coherence(
     nu: np.ndarray, lags: np.ndarray, w: float, gridding: str, scale: float = 1.0
 ) -> np.ndarray:
@@ -148,7 +123,7 @@ def _lateral_coherence(
     Point samples: the Matern function of ``nu * lag``. Cell means: the rows are box
     averages across one cell, so their covariance is the point one averaged over the
     triangle ``1 - |s|``, ``s`` in [-1, 1] (Gauss-Legendre on each half). ``scale`` is the
-    rows' lateral scale ``a`` (:mod:`rough_map.psd._lateral`): the isotropic surface
+    rows' lateral scale ``a`` (:mod:`rough_map.psd._corrections`): the isotropic surface
     stretched across the profiles, whose rows ``lag`` apart are ``a * lag`` apart on it.
     """
     nu_across = nu if scale == 1.0 else nu * scale
@@ -166,7 +141,7 @@ def _lateral_box(nu: np.ndarray, w: float) -> np.ndarray:
 
 
 def _cell_gain(nu: np.ndarray) -> np.ndarray:
-    """:func:`rough_map.psd._leakage._cell_mean_gain` on ``nu`` at :data:`W_NODES`,
+    """:func:`rough_map.psd._corrections._cell_mean_gain` on ``nu`` at :data:`W_NODES`,
     computed on 48 wavenumbers and interpolated in log-log (it is smooth)."""
     coarse = np.geomspace(nu.min(), math.pi, 48)
     g = np.log(_cell_mean_gain(coarse, W_NODES))
@@ -331,7 +306,7 @@ def standard_errors(
         Log bias of an ordinate, which gives the Welch degrees of freedom.
     scale : ndarray, shape (patches,), optional
         Each patch's lateral scale as its rows show it, a fractional index into
-        :data:`A_NODES` (:func:`rough_map.psd._lateral.lateral_scale`);
+        :data:`A_NODES` (:func:`rough_map.psd._corrections.lateral_scale`);
         None or NaN: isotropic.
 
     Returns
@@ -446,7 +421,7 @@ def _contract(flat: np.ndarray, t0: np.ndarray, tw: np.ndarray) -> tuple[np.ndar
     """Design effect (at least 1) and variance of one profile's statistic from its pair
     products ``flat`` and the tables ``t0``, ``tw`` (flattened alike; one row per row of
     ``flat``, or one node for all). The dot products are taken one row at a time, as
-    ``rough_map.psd._regression._row_dot`` does: the same numbers in any batch."""
+    ``rough_map.psd._fit._row_dot`` does: the same numbers in any batch."""
     q0 = np.multiply(flat, t0, order="C").sum(axis=-1)
     qw = np.multiply(flat, tw, order="C").sum(axis=-1)
     d = 1.0 + 2.0 * np.divide(qw, q0, out=np.zeros_like(qw), where=q0 > 0)

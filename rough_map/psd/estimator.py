@@ -2,13 +2,12 @@
 :func:`profile_psd` (the method is described in :mod:`rough_map.psd`).
 
 These are thin wrappers in the manner of :func:`scipy.signal.welch`: they check the input,
-apply the gap policy (:mod:`rough_map.psd._gaps`), compute the spectra
+apply the gap policy (:mod:`rough_map.psd._spectra`), compute the spectra
 (:mod:`rough_map.psd._spectra`) and fit them (:mod:`rough_map.psd._fit`).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from typing import Any
 
@@ -16,13 +15,20 @@ import numpy as np
 
 from rough_map.errors import InputError, PatchError
 from rough_map.limits import LIMITS
-from rough_map.patch._params import check_int
-from rough_map.psd._fit import Spectra, fit
-from rough_map.psd._gaps import as_heights, check_heights, check_spacing, fill_gaps
-from rough_map.psd._noise import check_floor, gap_statistics
-from rough_map.psd._options import Options, check_window
-from rough_map.psd._result import PatchRoughness
-from rough_map.psd._spectra import adjacent_cross, detrended_dft, detrended_rms, power, spectrum
+from rough_map.psd._corrections import check_floor, gap_statistics
+from rough_map.psd._fit import PatchRoughness, Spectra, fit
+from rough_map.psd._spectra import (
+    adjacent_cross,
+    as_heights,
+    check_heights,
+    check_spacing,
+    detrended_dft,
+    detrended_rms,
+    fill_gaps,
+    power,
+    spectrum,
+)
+from rough_map.psd.options import Options
 
 log = logging.getLogger(__name__)
 
@@ -31,22 +37,7 @@ _CHUNK_CELLS = 800_000
 
 
 def patch_roughness(
-    heights: np.ndarray,
-    spacing: float,
-    *,
-    window: str = "hann",
-    method: str = "unbiased",
-    nperseg: int | None = None,
-    noverlap: int | None = None,
-    omega0: float = 1.0,
-    noise_psd: float | None = None,
-    subtract_noise: bool = False,
-    max_gap: float = 0.05,
-    max_gap_fraction: float = 0.2,
-    min_profiles: int = 3,
-    gridding: str = "point",
-    waviness: float | None = None,
-    row_spacing: float | None = None,
+    heights: np.ndarray, spacing: float, options: Options | None = None, **changes: Any
 ) -> PatchRoughness:
     """Roughness parameters (R, w) of one patch, with their first-order uncertainty.
 
@@ -58,42 +49,11 @@ def patch_roughness(
         :func:`patch_roughness_batch`.
     spacing : float
         Sample spacing B in m (8 mm in the paper).
-    window : str
-        Spectral window, default ``"hann"`` (a rectangular window leaks badly on spectra as
-        steep as Omega^-2.5).
-    method : {"unbiased", "paper"}
-        ``"unbiased"`` corrects the -gamma bias of the log periodogram; ``"paper"`` is the
-        paper's plain log-log fit (R about 44 % low).
-    nperseg, noverlap : int, optional
-        Welch segmenting in samples; default one segment over the whole profile.
-    omega0 : float
-        Reference wavenumber of R in rad/m.
-    noise_psd : float, optional
-        Measurement-noise floor in m^3/rad (see :func:`rough_map.patch.grid_points`).
-    subtract_noise : bool
-        Subtract ``noise_psd`` before the fit.
-    max_gap : float
-        Longest gap in m filled by interpolation.
-    max_gap_fraction : float
-        Largest fraction of missing cells in a kept profile.
-    min_profiles : int
-        Fewest usable profiles; fewer raise :class:`~rough_map.errors.PatchError`.
-    gridding : {"point", "cell_mean"}
-        How the heights were sampled. ``"point"``: samples of the surface at the grid
-        nodes (synthetic grids, interpolated surfaces). ``"cell_mean"``: means of many points
-        per cell (a dense cloud gridded by :func:`rough_map.patch.grid_points`); the box
-        filter of the averaging steepens w by about 0.25 and raises R about 2.5 times, and
-        the unbiased method corrects for it, for the lateral scale of the ground that the
-        coherence of adjacent rows shows (:mod:`rough_map.psd._lateral`; the rows must be
-        adjacent rows of the grid; with Welch segments the ground is taken as isotropic).
-    waviness : float, optional
-        Fix the waviness (dimensionless) instead of fitting it (ISO 8608 classifies roads
-        with w = -2); then only R is estimated and ``sigma_w`` is 0.
-    row_spacing : float, optional
-        Distance in m between neighbouring profiles (the rows of a grid of cells wider
-        across than along, :attr:`rough_map.patch.PatchSpec.row_spacing`); default
-        ``spacing``. It sets the unit of the lateral scale the cell-mean fit reports (the
-        correction itself reads the rows as they are).
+    options : Options, optional
+        The estimator's options (:class:`~rough_map.psd.Options`, where each is described
+        with its unit); default ``Options()``.
+    **changes
+        Fields of ``options`` changed by keyword (``method="paper"``).
 
     Returns
     -------
@@ -102,27 +62,12 @@ def patch_roughness(
     Raises
     ------
     InputError
-        Bad shape, spacing, method or non-finite values other than NaN.
+        Bad shape, spacing, options or non-finite values other than NaN.
     PatchError
         Too few usable profiles.
     """
-    opt = Options(
-        window=window,
-        method=method,
-        nperseg=nperseg,
-        noverlap=noverlap,
-        omega0=omega0,
-        noise_psd=noise_psd,
-        subtract_noise=subtract_noise,
-        max_gap=max_gap,
-        max_gap_fraction=max_gap_fraction,
-        min_profiles=min_profiles,
-        gridding=gridding,
-        waviness=waviness,
-        row_spacing=row_spacing,
-    )
+    opt = Options.of(options, changes, "patch_roughness")
     spacing = check_spacing(spacing)
-    opt.check_omega0()
     arr = _as_float(heights)
     if arr.ndim == 3:
         raise InputError(
@@ -138,7 +83,7 @@ def patch_roughness(
 
 
 def patch_roughness_batch(
-    heights: np.ndarray, spacing: float, **options: Any
+    heights: np.ndarray, spacing: float, options: Options | None = None, **changes: Any
 ) -> list[PatchRoughness]:
     """:func:`patch_roughness` of a stack of patches, in one vectorised pass.
 
@@ -148,11 +93,8 @@ def patch_roughness_batch(
         ``p`` height grids in m of ``m`` profiles of ``n`` samples, NaN for missing cells.
     spacing : float
         Sample spacing B in m.
-    **options
-        The keyword options of :func:`patch_roughness` (``window``, ``method``, ``nperseg``,
-        ``noverlap``, ``omega0`` in rad/m, ``noise_psd`` in m^3/rad, ``subtract_noise``,
-        ``max_gap`` in m, ``max_gap_fraction``, ``min_profiles``, ``gridding``,
-        ``waviness``, ``row_spacing`` in m).
+    options, **changes
+        The estimator's options, as for :func:`patch_roughness`.
 
     Returns
     -------
@@ -166,19 +108,13 @@ def patch_roughness_batch(
     PatchError
         Too few usable profiles in some patch.
     """
-    unknown = sorted(set(options) - {f.name for f in dataclasses.fields(Options)})
-    if unknown:
-        raise UnknownOptionError(
-            f"patch_roughness_batch() got unexpected keyword arguments {unknown[:5]}"
-        )
-    opt = Options(**options)
+    opt = Options.of(options, changes, "patch_roughness_batch")
     spacing = check_spacing(spacing)
-    opt.check_omega0()
     return _raised(_batch(_as_float(heights), spacing, opt, None))
 
 
 def patch_roughness_each(
-    heights: np.ndarray, spacing: float, *, noise_psd: Any = None, **options: Any
+    heights: np.ndarray, spacing: float, options: Options | None = None, **changes: Any
 ) -> list[PatchRoughness | PatchError]:
     """:func:`patch_roughness_batch`, but a patch the estimator refuses (too few usable
     profiles, too few wavenumbers above its noise floor) gets its
@@ -195,10 +131,9 @@ def patch_roughness_each(
         ``p`` height grids in m, NaN for missing cells.
     spacing : float
         Sample spacing B in m.
-    noise_psd : float or ndarray of shape (p,), optional
-        The noise floor of every patch, or of each, in m^3/rad.
-    **options
-        The other keyword options of :func:`patch_roughness`.
+    options, **changes
+        The estimator's options, as for :func:`patch_roughness`; here ``noise_psd`` may
+        also be an array of shape (p,): the noise floor of each patch in m^3/rad.
 
     Returns
     -------
@@ -211,15 +146,10 @@ def patch_roughness_each(
         What :func:`patch_roughness_batch` raises for the whole stack (shape, spacing,
         options, infinite values).
     """
-    unknown = sorted(set(options) - {f.name for f in dataclasses.fields(Options)})
-    if unknown:
-        raise UnknownOptionError(
-            f"patch_roughness_each() got unexpected keyword arguments {unknown[:5]}"
-        )
     arr = _as_float(heights)
     floors: np.ndarray | None = None
-    if noise_psd is not None and np.ndim(noise_psd) > 0:
-        floors = np.asarray(noise_psd, dtype=float)
+    if changes.get("noise_psd") is not None and np.ndim(changes["noise_psd"]) > 0:
+        floors = np.asarray(changes.pop("noise_psd"), dtype=float)
         if arr.ndim != 3 or floors.shape != (arr.shape[0],):
             raise InputError(
                 f"noise_psd has shape {floors.shape}; give one floor (m^3/rad) or one per "
@@ -227,16 +157,9 @@ def patch_roughness_each(
             )
         if not (np.isfinite(floors).all() and (floors >= 0).all() and (floors <= 1e6).all()):
             raise InputError("noise_psd must be finite floors in [0, 1e6] m^3/rad")
-        opt = Options(**options)  # the floors go to the fit as they are
-    else:
-        opt = Options(noise_psd=noise_psd, **options)
+    opt = Options.of(options, changes, "patch_roughness_each")
     spacing = check_spacing(spacing)
-    opt.check_omega0()
     return _batch(arr, spacing, opt, floors)
-
-
-class UnknownOptionError(InputError, TypeError):
-    """An unknown keyword option (a TypeError too, as Python raises for a bad keyword)."""
 
 
 def _as_float(heights: Any) -> np.ndarray:
@@ -316,7 +239,7 @@ def _estimate(
     """Estimates for a stack (patches, profiles, samples) of heights, in cache-sized chunks;
     ``floors`` is each patch's noise floor in m^3/rad (None: none known), subtracted when
     ``opt`` says so; ``filled`` what the gap policy did to each patch (rows of
-    :func:`rough_map.psd._noise.gap_statistics`; None: nothing).
+    :func:`rough_map.psd._corrections.gap_statistics`; None: nothing).
 
     With ``check``, patches with non-finite cells go through :func:`_with_gaps`: found up
     front from the stack's sum (one cheap pass), and for the rare patch whose values only
@@ -442,14 +365,7 @@ def _with_gaps(
 
 
 def profile_psd(
-    heights: np.ndarray,
-    spacing: float,
-    *,
-    window: str = "hann",
-    nperseg: int | None = None,
-    noverlap: int | None = None,
-    max_gap: float = 0.05,
-    max_gap_fraction: float = 0.2,
+    heights: np.ndarray, spacing: float, options: Options | None = None, **changes: Any
 ) -> tuple[np.ndarray, np.ndarray]:
     """One-sided PSD of every longitudinal profile of a height grid.
 
@@ -459,12 +375,10 @@ def profile_psd(
         Elevation profiles in m along the rows, NaN for missing cells.
     spacing : float
         Sample spacing B in m.
-    window : str
-        Window name understood by :func:`scipy.signal.get_window`; default Hann.
-    nperseg, noverlap : int, optional
-        Welch segment length and overlap in samples; default one segment over the profile.
-    max_gap, max_gap_fraction : float
-        Gap policy (see :mod:`rough_map.psd`); max_gap in m.
+    options, **changes
+        The estimator's options, as for :func:`patch_roughness`; the spectra use
+        ``window``, ``nperseg``, ``noverlap`` and the gap policy (``max_gap`` in m,
+        ``max_gap_fraction``).
 
     Returns
     -------
@@ -475,15 +389,13 @@ def profile_psd(
         rows of dropped profiles are NaN. The sum of ``psd * dOmega`` is the variance of
         the detrended profile (Parseval).
     """
+    opt = Options.of(options, changes, "profile_psd")
     spacing = check_spacing(spacing)
-    check_window(window)
-    check_int("nperseg", nperseg, low=8, high=LIMITS.grid_cells, unit="samples", none=True)
-    check_int("noverlap", noverlap, low=0, high=LIMITS.grid_cells, unit="samples", none=True)
     h = check_heights(heights)
     one = h.shape[0] == 1 and np.ndim(heights) == 1
-    filled, keep = fill_gaps(h, spacing, max_gap=max_gap, max_gap_fraction=max_gap_fraction)
+    filled, keep = fill_gaps(h, spacing, max_gap=opt.max_gap, max_gap_fraction=opt.max_gap_fraction)
     safe = np.where(keep[:, None], filled, 0.0)
-    omega, p, _ = spectrum(safe, spacing, window, nperseg, noverlap)
+    omega, p, _ = spectrum(safe, spacing, opt.window, opt.nperseg, opt.noverlap)
     p = p.astype(float)
     p[~keep] = np.nan
     return omega, (p[0] if one else p)

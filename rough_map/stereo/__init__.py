@@ -53,7 +53,7 @@ dense noise-free cloud of the true surface, ``frame_features`` of single stereo 
 ``w`` -0.16 to +0.15 off (-0.02 on average), 6 frames of 12 within the issue's +-25 % and
 +-0.1. (Before the cell-mean correction read the cloud's lateral scale it was R 0.47-1.8x,
 ``w`` +0.05 on average, 5 of 12: the matching window smooths across the rows, so stereo
-clouds read a lateral scale of 0.2-0.6, see :mod:`rough_map.psd._lateral`.) Moving the
+clouds read a lateral scale of 0.2-0.6, see :mod:`rough_map.psd._corrections`.) Moving the
 prior by a fraction of a pixel (a 2 mm change of plane) moves R by +-40 % and ``w`` by
 +-0.1 on a given frame (tests/test_stereo.py,
 ``test_stereo_features_agree_with_the_true_surface``: met at seed 0 on compact soil, gravel
