@@ -6,6 +6,11 @@ running their constructors. :func:`check_loaded_model` checks the structure that
 relies on (types, shapes, finiteness, index ranges of the trees, which compiled code reads
 without bounds checks) and then runs a trial prediction on a small synthetic feature matrix;
 any failure is a one-line :class:`~rough_map.errors.ModelError` naming the file.
+
+The crash the node checks prevent: scikit-learn's compiled tree walk follows a child index
+beyond the tree's nodes without a bounds check, and a forest so rebuilt by skops dies in
+``predict`` (SIGSEGV; ``tests/test_library_crashes.py``), as would the trial prediction. The
+other checks turn late exceptions into one line at load.
 """
 
 from __future__ import annotations

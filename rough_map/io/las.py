@@ -193,6 +193,11 @@ def check_las_header(path: Path) -> None:
     """Check the public header block of a LAS/LAZ file against the file size before laspy
     (and the LAZ decoder, which aborts the process on absurd counts) sees it.
 
+    The crash it prevents: lazrs (0.8) allocates a chunk table of the declared number of
+    chunks before reading it and aborts the process (SIGABRT) when that fails (2^31 - 1
+    chunks; ``tests/test_library_crashes.py``). The other checks give laspy's errors one
+    line naming the field.
+
     Checked: the signature, header size, offset to the point data, the VLRs (count and
     lengths), the point format and record length, the point count (LAS: the records fit in
     the file; LAZ: at most ``LIMITS.laz_ratio`` times the file size, and the chunk table),

@@ -1,8 +1,11 @@
 """PLY and PCD point clouds read with numpy, without open3d.
 
-open3d's readers trust their headers and can crash the process (SIGSEGV, SIGABRT) on a
-corrupt file, so the readers here parse the header themselves, check every declared count
-against the bytes the file really holds before allocating, and read the points with numpy.
+open3d's readers trust their files: its PCD reader dies (SIGSEGV, open3d 0.20) on a
+well-formed PCD whose fields are x, y, z and ``normal_x`` alone, and its PLY reader makes up
+the points a truncated file does not hold, with a warning only (both in
+``tests/test_library_crashes.py``). So the readers here parse the header themselves, check
+every declared count against the bytes the file really holds before allocating, and read
+the points with numpy.
 Writing stays with open3d (:func:`rough_map.io.pointcloud.write_cloud`).
 
 Supported:

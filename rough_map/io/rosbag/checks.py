@@ -6,6 +6,14 @@ rosbags trusts the sizes and counts a bag declares: a damaged record length make
 files (ROS 1 ``.bag``, MCAP) and validates ``metadata.yaml`` first, with sizes checked
 against the real file sizes, so that what rosbags then reads is bounded by the input.
 
+The crash this walk prevents: rosbags (0.11) decompresses every chunk whole in memory, so a
+chunk bomb (a valid bag of 1.3 MB whose lz4 chunk expands to 300 MiB took 300+ MiB more;
+one of a hundred MB takes more than the machine has) ends in the kernel's OOM killer. The
+walk finds every chunk and decompresses it in dropped 1 MiB steps against its declared size
+and ``LIMITS.bag_chunk`` (``tests/test_library_crashes.py`` shows the blow-up). The other
+checks (record lengths, indices, ``metadata.yaml``) turn what rosbags raises late or as
+another error into one line naming the record; they prevent no crash.
+
 Every problem is a :class:`rough_map.errors.FileFormatError` naming the file and the
 record or field.
 """
