@@ -184,3 +184,28 @@ print(n, int(peak) // 1024)  # messages, peak resident MiB of this process
         FileFormatError, match=r"bomb\.bag \[ros1 chunk\]: .*chunk declares 314577695 B"
     ):
         inspect_bag(bomb)
+
+
+def test_numpy_expands_an_archive_member_whole_in_memory(tmp_path: Path) -> None:
+    """An ``.npz`` of 0.3 MB whose member is 300 MiB of zeros, declared honestly:
+    ``np.load`` inflates it whole (numpy 2), so an archive of a hundred MB can take more
+    memory than the machine has. rough_map's reader (:mod:`rough_map.io.safe_npz`) refuses
+    arrays of more than ``LIMITS.archive_ratio`` times the archive before inflating them,
+    and inflates members in 1 MiB pieces."""
+    path = tmp_path / "bomb.npz"
+    np.savez_compressed(path, points=np.zeros(((300 << 20) // 24, 3)))
+    code = """
+import re, sys
+from pathlib import Path
+import numpy as np
+with np.load(sys.argv[1]) as archive:
+    shape = archive["points"].shape
+peak = re.search(r"VmHWM:\\s+(\\d+) kB", Path("/proc/self/status").read_text())[1]
+print(shape[0], int(peak) // 1024)  # points, peak resident MiB of this process
+"""
+    proc = _library_alone(code, str(path))
+    points, peak = (int(v) for v in proc.stdout.split())
+    assert points == (300 << 20) // 24 and path.stat().st_size < 1 << 20
+    assert peak > 300, f"np.load took {peak} MiB: it no longer inflates a member whole"
+    with pytest.raises(FileFormatError, match=r"bomb\.npz \[points\]: declares 314572"):
+        read_cloud(path)

@@ -9,6 +9,11 @@ compressed size), and all the arrays read from one archive together may hold at 
 ``LIMITS.archive_ratio`` times the archive's size (plus 4 MiB): real point clouds and worlds
 compress 1.5-3 times, more is a zip bomb. Members inflate in 1 MiB pieces. Every failure is a
 one-line :class:`~rough_map.errors.FileFormatError` naming the file and the member.
+
+The crash the archive checks prevent: ``np.load`` inflates a member whole (an archive of
+0.3 MB with 300 MiB of zeros took 300+ MiB; ``tests/test_library_crashes.py``), so an archive
+of a hundred MB can end in the kernel's OOM killer. The header checks turn numpy's errors
+into one line naming the member; they prevent no crash.
 """
 
 from __future__ import annotations
