@@ -20,112 +20,91 @@ from typing import Any
 __all__ = ["LIMITS", "Limits", "markdown_table"]
 
 
-def _limit(unit: str, what: str) -> Any:
-    """A field of :class:`Limits`: its unit and what it bounds are the field's metadata."""
-    return field(metadata={"unit": unit, "what": what})
+def _limit(value: int, unit: str, what: str) -> Any:
+    """A field of :class:`Limits`: its value is the default, its unit and what it bounds
+    the field's metadata."""
+    return field(default=value, metadata={"unit": unit, "what": what})
 
 
 @dataclass(frozen=True)
 class Limits:
-    """The values of every boundary check (see the module's text)."""
+    """The values of every boundary check (see the module's text).
+
+    Where the values come from: a real ROS 2 ``metadata.yaml`` holds about 1 kB per topic
+    and ruamel parses it at about 6 s of CPU per MB; rosbag writers use chunks of 768 KiB to
+    4 MiB; a forest of 200 trees is a model file of a few MB with a ``schema.json`` of about
+    6 MB and a nesting of about 40; real airborne lidar compresses about 6 times in LAZ (a
+    rough simulated grid 25); the estimator's correlation between profiles takes about
+    200 MB and several seconds at 512 samples a side, its per-profile tables about 250 MB
+    at 4096 samples, and 2**24 cells are 128 MB of float64.
+    """
 
     points: int = _limit(
-        "points", "points declared by any cloud header (and never more than its bytes hold)"
+        2_000_000_000,
+        "points",
+        "points declared by any cloud header (and never more than its bytes hold)",
     )
-    cloud_header: int = _limit("B", "PLY / PCD header")
-    npy_header: int = _limit("B", "`.npy` header (NumPy's own default)")
-    laz_ratio: int = _limit("x", "LAZ: decoded point bytes per byte of point data")
-    archive_member: int = _limit("B", "`.npz` member, uncompressed")
+    cloud_header: int = _limit(65_536, "B", "PLY / PCD header")
+    npy_header: int = _limit(10_000, "B", "`.npy` header (NumPy's own default)")
+    laz_ratio: int = _limit(200, "x", "LAZ: decoded point bytes per byte of point data")
+    archive_member: int = _limit(4 * 2**30, "B", "`.npz` member, uncompressed")
     deflate_ratio: int = _limit(
+        1100,
         "x",
         "uncompressed size of a deflated `.npz` member or image per compressed byte "
         "(deflate's best is 1032)",
     )
-    image_pixels: int = _limit("px", "image (PNG, JPEG, BMP, PNM, TIFF)")
-    calibration_image_side: int = _limit("px", "image side of a stereo calibration")
-    document: int = _limit("B", "JSON or YAML file (traverse, configs, calibrations, metadata)")
+    image_pixels: int = _limit(100_000_000, "px", "image (PNG, JPEG, BMP, PNM, TIFF)")
+    calibration_image_side: int = _limit(65_536, "px", "image side of a stereo calibration")
+    document: int = _limit(
+        64 * 2**20, "B", "JSON or YAML file (traverse, configs, calibrations, metadata)"
+    )
     yaml_document: int = _limit(
-        "B", "YAML file (parsed by the safe pure-Python loader: no Python tags)"
+        4 * 2**20, "B", "YAML file (parsed by the safe pure-Python loader: no Python tags)"
     )
-    document_depth: int = _limit("", "nesting of JSON and YAML")
-    int_digits: int = _limit("", "digits of an integer in JSON and YAML")
-    yaml_alias_values: int = _limit("", "values YAML aliases may add")
-    model_file: int = _limit("B", "model file (`.skops`)")
+    document_depth: int = _limit(64, "", "nesting of JSON and YAML")
+    int_digits: int = _limit(30, "", "digits of an integer in JSON and YAML")
+    yaml_alias_values: int = _limit(100_000, "", "values YAML aliases may add")
+    model_file: int = _limit(256 * 2**20, "B", "model file (`.skops`)")
     model_uncompressed: int = _limit(
-        "B", "members of a model file, uncompressed (each time the schema refers to one)"
+        256 * 2**20,
+        "B",
+        "members of a model file, uncompressed (each time the schema refers to one)",
     )
-    model_members: int = _limit("", "members of a model file")
+    model_members: int = _limit(100_000, "", "members of a model file")
     model_member_ratio: int = _limit(
-        "x", "uncompressed size per compressed byte of a model member above 1 MB"
+        200, "x", "uncompressed size per compressed byte of a model member above 1 MB"
     )
-    model_schema: int = _limit("B", "`schema.json` of a model file")
-    model_schema_depth: int = _limit("", "nesting of a model's `schema.json`")
-    model_card: int = _limit("B", "model card")
-    bag_metadata: int = _limit("B", "ROS 2 `metadata.yaml`")
-    bag_metadata_depth: int = _limit("", "bracket nesting in a ROS 2 `metadata.yaml`")
-    bag_storage_files: int = _limit("", "storage files a ROS 2 bag lists")
-    bag_topics: int = _limit("", "topics a ROS 2 bag's metadata lists")
-    bag_name: int = _limit("characters", "a topic, type or file name in a ROS 2 `metadata.yaml`")
-    bag_chunk: int = _limit("B", "a bag chunk, decompressed")
+    model_schema: int = _limit(32 * 2**20, "B", "`schema.json` of a model file")
+    model_schema_depth: int = _limit(200, "", "nesting of a model's `schema.json`")
+    model_card: int = _limit(16 * 2**20, "B", "model card")
+    bag_metadata: int = _limit(256 * 2**10, "B", "ROS 2 `metadata.yaml`")
+    bag_metadata_depth: int = _limit(32, "", "bracket nesting in a ROS 2 `metadata.yaml`")
+    bag_storage_files: int = _limit(1024, "", "storage files a ROS 2 bag lists")
+    bag_topics: int = _limit(10_000, "", "topics a ROS 2 bag's metadata lists")
+    bag_name: int = _limit(
+        4096, "characters", "a topic, type or file name in a ROS 2 `metadata.yaml`"
+    )
+    bag_chunk: int = _limit(256 * 2**20, "B", "a bag chunk, decompressed")
     archive_ratio: int = _limit(
-        "x", "arrays read from a `.npz` archive per byte of it (beyond 4 MiB)"
+        10, "x", "arrays read from a `.npz` archive per byte of it (beyond 4 MiB)"
     )
-    raster_cells: int = _limit("cells", "cells of a truth GeoTIFF (and at most 1100 per byte)")
-    raster_class_names: int = _limit("", "class names a truth GeoTIFF's sidecar lists")
-    model_classes: int = _limit("", "classes of a model")
-    model_features: int = _limit("", "features of a model")
-    model_bins: int = _limit("", "wavenumbers of a model's spectral band")
+    raster_cells: int = _limit(
+        2**31, "cells", "cells of a truth GeoTIFF (and at most 1100 per byte)"
+    )
+    raster_class_names: int = _limit(65_536, "", "class names a truth GeoTIFF's sidecar lists")
+    model_classes: int = _limit(1000, "", "classes of a model")
+    model_features: int = _limit(100_000, "", "features of a model")
+    model_bins: int = _limit(100_000, "", "wavenumbers of a model's spectral band")
     patch_samples: int = _limit(
-        "samples", "samples per side of a patch (the estimator's cost grows as its square)"
+        512, "samples", "samples per side of a patch (the estimator's cost grows as its square)"
     )
-    profile_samples: int = _limit("samples", "samples of one profile given to the estimator")
-    grid_cells: int = _limit("cells", "cells of a height grid given to `profile_psd`")
+    profile_samples: int = _limit(4096, "samples", "samples of one profile given to the estimator")
+    grid_cells: int = _limit(2**24, "cells", "cells of a height grid given to `profile_psd`")
 
 
-#: The values. A real ROS 2 ``metadata.yaml`` holds about 1 kB per topic and ruamel parses
-#: it at about 6 s of CPU per MB; rosbag writers use chunks of 768 KiB to 4 MiB; a forest
-#: of 200 trees is a model file of a few MB with a ``schema.json`` of about 6 MB and a
-#: nesting of about 40; real airborne lidar compresses about 6 times in LAZ (a rough
-#: simulated grid 25); the estimator's correlation between profiles takes about 200 MB
-#: and several seconds at 512 samples a side, its per-profile tables about 250 MB at 4096
-#: samples, and 2**24 cells are 128 MB of float64.
-LIMITS = Limits(
-    points=2_000_000_000,
-    cloud_header=65_536,
-    npy_header=10_000,
-    laz_ratio=200,
-    archive_member=4 * 2**30,
-    deflate_ratio=1100,
-    image_pixels=100_000_000,
-    calibration_image_side=65_536,
-    document=64 * 2**20,
-    yaml_document=4 * 2**20,
-    document_depth=64,
-    int_digits=30,
-    yaml_alias_values=100_000,
-    model_file=256 * 2**20,
-    model_uncompressed=256 * 2**20,
-    model_members=100_000,
-    model_member_ratio=200,
-    model_schema=32 * 2**20,
-    model_schema_depth=200,
-    model_card=16 * 2**20,
-    bag_metadata=256 * 2**10,
-    bag_metadata_depth=32,
-    bag_storage_files=1024,
-    bag_topics=10_000,
-    bag_name=4096,
-    bag_chunk=256 * 2**20,
-    archive_ratio=10,
-    raster_cells=2**31,
-    raster_class_names=65_536,
-    model_classes=1000,
-    model_features=100_000,
-    model_bins=100_000,
-    patch_samples=512,
-    profile_samples=4096,
-    grid_cells=2**24,
-)
+#: The values: each field's default.
+LIMITS = Limits()
 
 
 def shown(value: int, unit: str) -> str:
