@@ -76,6 +76,19 @@ class Parser(argparse.ArgumentParser):
         self.exit(2, error_line(self.prog, message) + "\n")
 
 
+def add_command(
+    sub: argparse._SubParsersAction, name: str, help: str, doc: str | None, **kwargs: Any
+) -> argparse.ArgumentParser:
+    """The parser of command ``name``: ``help`` is its line in ``rough-map --help``, and
+    its description is its module's docstring after the first paragraph (the usage line).
+    """
+    description = doc.split("\n\n", 1)[1] if doc and "\n\n" in doc else None
+    parser: argparse.ArgumentParser = sub.add_parser(
+        name, help=help, description=description, **kwargs
+    )
+    return parser
+
+
 def add_verbosity_args(parser: argparse.ArgumentParser, *, suppress: bool = False) -> None:
     """``-v``/``-q``. A command's parser takes them with ``suppress=True``
     (``default=argparse.SUPPRESS``): an option given before the command name is then not

@@ -1,4 +1,14 @@
-"""``rough-map batch T1 T2 ... --out DIR``: many traverses mapped and fused into one map."""
+"""``rough-map batch T1 T2 ... --out DIR``: many traverses mapped and fused into one map.
+
+Map each traverse as `rough-map map` does into DIR/<name>/ (GeoTIFFs, PNGs, features.csv,
+labels.csv, map_state.npz), then add all their fusion sums into one map in one CRS (the same
+Bayesian fusion) written at DIR's top level: DIR/map.tif, DIR/map_class.tif,
+DIR/map_<layer>.png and DIR/batch.json. Resumable: a traverse already mapped with the same
+inputs and settings is not redone, and each traverse's folder appears only when complete.
+With --scheduler the traverses are mapped on the workers of a Dask cluster (pip install
+'rough-map[cluster]'); workers must see the traverses at the paths given here. The outputs
+are the same bytes for any -j and on a cluster.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +18,7 @@ from pathlib import Path
 from rough_map.cli._common import (
     NEAR_FAR,
     add_allow_outside_arg,
+    add_command,
     add_jobs_arg,
     add_map_args,
     add_model_arg,
@@ -19,20 +30,11 @@ from rough_map.cli._common import (
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
+    p = add_command(
+        sub,
         "batch",
-        help="map many traverses (in parallel or on a Dask cluster) and fuse them into one map",
-        description=(
-            "Map each traverse as `rough-map map` does into DIR/<name>/ (GeoTIFFs, PNGs, "
-            "features.csv, labels.csv, map_state.npz), then add all their fusion sums into "
-            "one map in one CRS (the same Bayesian fusion) written at DIR's top level: "
-            "DIR/map.tif, DIR/map_class.tif, DIR/map_<layer>.png and DIR/batch.json. "
-            "Resumable: a traverse already mapped with the same inputs and settings is not "
-            "redone, and each traverse's folder appears only when complete. With "
-            "--scheduler the traverses are mapped on the workers of a Dask cluster "
-            "(pip install 'rough-map[cluster]'); workers must see the traverses at the "
-            "paths given here. The outputs are the same bytes for any -j and on a cluster."
-        ),
+        "map many traverses (in parallel or on a Dask cluster) and fuse them into one map",
+        __doc__,
     )
     p.add_argument(
         "traverses", nargs="+", type=existing_path, metavar="TRAVERSE", help="traverse folders"

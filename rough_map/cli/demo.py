@@ -22,6 +22,7 @@ import numpy as np
 
 from rough_map import iso8608, terrain
 from rough_map.cli._common import (
+    add_command,
     add_model_arg,
     chosen_model,
     non_negative_int,
@@ -39,10 +40,11 @@ if TYPE_CHECKING:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
+    p = add_command(
+        sub,
         "demo",
-        help="run the whole chain on built-in simulated data and say where the outputs are",
-        description=__doc__.split("\n\n", 1)[1] if __doc__ else None,
+        "run the whole chain on built-in simulated data and say where the outputs are",
+        __doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument(

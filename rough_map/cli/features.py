@@ -1,4 +1,10 @@
-"""``rough-map features``: roughness features of one cloud, or of every frame of a traverse."""
+"""``rough-map features``: roughness features of one cloud, or of every frame of a traverse.
+
+Cut the patch of interest out of a point cloud in the vehicle frame (x forward, y left, z
+up, metres), grid it, and estimate its PSD roughness parameters. CLOUD is .npy (N x 3),
+.csv/.xyz/.txt, .ply/.pcd, .las/.laz or KITTI .bin. A traverse folder instead writes one row
+per frame to --out.
+"""
 
 from __future__ import annotations
 
@@ -11,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 from rough_map.cli._common import (
     add_allow_outside_arg,
+    add_command,
     add_jobs_arg,
     add_patch_args,
     add_psd_args,
@@ -31,15 +38,11 @@ if TYPE_CHECKING:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
+    p = add_command(
+        sub,
         "features",
-        help="R, w, sigma and ISO class of the patch ahead, for a cloud or a traverse",
-        description=(
-            "Cut the patch of interest out of a point cloud in the vehicle frame (x forward, "
-            "y left, z up, metres), grid it, and estimate its PSD roughness parameters. "
-            "CLOUD is .npy (N x 3), .csv/.xyz/.txt, .ply/.pcd, .las/.laz or KITTI .bin. "
-            "A traverse folder instead writes one row per frame to --out."
-        ),
+        "R, w, sigma and ISO class of the patch ahead, for a cloud or a traverse",
+        __doc__,
     )
     p.add_argument(
         "source",

@@ -1,4 +1,10 @@
-"""``rough-map import BAG ...``: a traverse folder from a ROS bag (no ROS needed)."""
+"""``rough-map import BAG ...``: a traverse folder from a ROS bag (no ROS needed).
+
+Write one frame per PointCloud2 message: the cloud in the vehicle frame (clouds/NNNNNN.npy)
+and the vehicle pose interpolated at its stamp (traverse.json). The poses come from
+odometry, a PoseStamped or PoseWithCovarianceStamped topic, the /tf tree, or GNSS fixes
+(NavSatFix: heading from the direction of travel). Prints the path of traverse.json.
+"""
 
 from __future__ import annotations
 
@@ -6,20 +12,12 @@ import argparse
 import math
 from pathlib import Path
 
-from rough_map.cli._common import existing_path, positive_int
+from rough_map.cli._common import add_command, existing_path, positive_int
 from rough_map.errors import InputError
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser(
-        "import",
-        help="make a traverse folder from a ROS bag",
-        description="Write one frame per PointCloud2 message: the cloud in the vehicle frame "
-        "(clouds/NNNNNN.npy) and the vehicle pose interpolated at its stamp (traverse.json). "
-        "The poses come from odometry, a PoseStamped or PoseWithCovarianceStamped topic, the "
-        "/tf tree, or GNSS fixes (NavSatFix: heading from the direction of travel). "
-        "Prints the path of traverse.json.",
-    )
+    parser = add_command(subparsers, "import", "make a traverse folder from a ROS bag", __doc__)
     parser.add_argument(
         "bag", type=existing_path, help="ROS 1 .bag file, ROS 2 bag folder, or .db3/.mcap file"
     )

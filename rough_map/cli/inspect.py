@@ -1,20 +1,19 @@
-"""``rough-map inspect BAG``: the topics of a ROS bag, their message types and counts."""
+"""``rough-map inspect BAG``: the topics of a ROS bag, their message types and counts.
+
+List the topics of a ROS 1 bag or ROS 2 bag (folder, .db3 or .mcap) with their message types
+and counts.
+"""
 
 from __future__ import annotations
 
 import argparse
 from dataclasses import asdict
 
-from rough_map.cli._common import emit_json, existing_path
+from rough_map.cli._common import add_command, emit_json, existing_path
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser(
-        "inspect",
-        help="list the topics of a ROS bag",
-        description="List the topics of a ROS 1 bag or ROS 2 bag (folder, .db3 or .mcap) "
-        "with their message types and counts.",
-    )
+    parser = add_command(subparsers, "inspect", "list the topics of a ROS bag", __doc__)
     parser.add_argument(
         "bag", type=existing_path, help="ROS 1 .bag file, ROS 2 bag folder, or .db3/.mcap file"
     )

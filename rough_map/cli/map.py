@@ -1,4 +1,16 @@
-"""``rough-map map TRAVERSE --model M --out DIR``: the semantic map, exported."""
+"""``rough-map map TRAVERSE --model M --out DIR``: the semantic map, exported.
+
+Compute the features of every frame, classify them with the model, smooth the classes along
+the path, fuse the patches into a grid map (R, w, sigma, level, class probabilities, count,
+last seen, elevation) and, when the frames have stereo images, extend it beyond the patch
+with near-to-far learning. Writes DIR/map.tif (float bands), DIR/map_class.tif (class with
+colour table), one PNG per layer, DIR/labels.csv, DIR/features.csv (with its metadata in
+DIR/features.csv.json) and, with --state, DIR/map_state.npz (the fusion sums, which
+`rough-map batch` adds up across traverses). Each cloud is read once; -j N spreads the
+frames over N processes with the same result. DIR is written as a set: staged beside it and
+swapped in whole when complete, so it holds either the old outputs or the new ones; your own
+files in DIR are kept.
+"""
 
 from __future__ import annotations
 
@@ -7,6 +19,7 @@ from pathlib import Path
 
 from rough_map.cli._common import (
     NEAR_FAR,
+    add_command,
     add_jobs_arg,
     add_map_args,
     add_model_arg,
@@ -23,22 +36,11 @@ from rough_map.cli._common import (
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
+    p = add_command(
+        sub,
         "map",
-        help="fuse a traverse into a grid map; write GeoTIFF, PNGs and per-frame labels",
-        description=(
-            "Compute the features of every frame, classify them with the model, smooth the "
-            "classes along the path, fuse the patches into a grid map (R, w, sigma, level, "
-            "class probabilities, count, last seen, elevation) and, when the frames have "
-            "stereo images, extend it beyond the patch with near-to-far learning. Writes "
-            "DIR/map.tif (float bands), DIR/map_class.tif (class with colour table), one PNG "
-            "per layer, DIR/labels.csv, DIR/features.csv (with its metadata in "
-            "DIR/features.csv.json) and, with --state, DIR/map_state.npz (the fusion sums, "
-            "which `rough-map batch` adds up across traverses). Each cloud is read once; "
-            "-j N spreads the frames over N processes with the same result. DIR is written "
-            "as a set: staged beside it and swapped in whole when complete, so it holds "
-            "either the old outputs or the new ones; your own files in DIR are kept."
-        ),
+        "fuse a traverse into a grid map; write GeoTIFF, PNGs and per-frame labels",
+        __doc__,
     )
     add_traverses_arg(p, tables=False)
     add_model_arg(p)

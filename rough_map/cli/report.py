@@ -1,4 +1,14 @@
-"""``rough-map report TRAVERSE --out DIR``: the paper's figures and an index.html."""
+"""``rough-map report TRAVERSE --out DIR``: the paper's figures and an index.html.
+
+Run the whole chain on a traverse (features, classes, filter, map, near-to-far when there
+are images) and write DIR/index.html with: R and w along the path with sigma bands and ISO
+lines (paper Figs. 7/9/12), the PSD of one profile with its fit (Fig. 4), the per-profile
+(R, w) scatter (Fig. 5), the fitted PSD lines against the ISO classes (Fig. 10), (R, w) by
+class with the roughness levels (Fig. 19), the elevation, roughness and class layers with
+the path (Figs. 20/21) and, when the frames are labelled, the confusion matrices; each
+figure with a caption, the numbers as tables, and links to the map's GeoTIFFs and one PNG
+per layer (written to DIR too).
+"""
 
 from __future__ import annotations
 
@@ -7,6 +17,7 @@ from pathlib import Path
 
 from rough_map.cli._common import (
     NEAR_FAR,
+    add_command,
     add_jobs_arg,
     add_map_args,
     add_model_arg,
@@ -19,20 +30,11 @@ from rough_map.cli._common import (
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
+    p = add_command(
+        sub,
         "report",
-        help="draw the paper's figures for a traverse, with the map and the evaluation",
-        description=(
-            "Run the whole chain on a traverse (features, classes, filter, map, near-to-far "
-            "when there are images) and write DIR/index.html with: R and w along the path "
-            "with sigma bands and ISO lines (paper Figs. 7/9/12), the PSD of one profile with "
-            "its fit (Fig. 4), the per-profile (R, w) scatter (Fig. 5), the fitted PSD lines "
-            "against the ISO classes (Fig. 10), (R, w) by class with the roughness levels "
-            "(Fig. 19), the elevation, roughness and class layers with the path (Figs. 20/21) "
-            "and, when the frames are labelled, the confusion matrices; each figure with a "
-            "caption, the numbers as tables, and links to the map's GeoTIFFs and one PNG per "
-            "layer (written to DIR too)."
-        ),
+        "draw the paper's figures for a traverse, with the map and the evaluation",
+        __doc__,
     )
     add_traverses_arg(p, tables=False)
     p.add_argument(

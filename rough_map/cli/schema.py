@@ -1,4 +1,8 @@
-"""``rough-map schema --out data_schema/``: regenerate the JSON Schemas of the file formats."""
+"""``rough-map schema --out data_schema/``: regenerate the JSON Schemas of the file formats.
+
+Write <name>.schema.json for each file format (traverse, ...), generated from the pydantic
+models of rough_map.config. Prints the files written.
+"""
 
 from __future__ import annotations
 
@@ -7,15 +11,14 @@ import logging
 import sys
 from pathlib import Path
 
+from rough_map.cli._common import add_command
+
 log = logging.getLogger(__name__)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser(
-        "schema",
-        help="write the JSON Schemas of the file formats",
-        description="Write <name>.schema.json for each file format (traverse, ...), generated "
-        "from the pydantic models of rough_map.config. Prints the files written.",
+    parser = add_command(
+        subparsers, "schema", "write the JSON Schemas of the file formats", __doc__
     )
     parser.add_argument(
         "--out", default="data_schema", metavar="DIR", help="folder (default data_schema)"

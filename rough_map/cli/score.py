@@ -1,4 +1,14 @@
-"""``rough-map score MAP_DIR --truth TRUTH.tif``: a written map scored against surveyed truth."""
+"""``rough-map score MAP_DIR --truth TRUTH.tif``: a written map scored against surveyed truth.
+
+Score the class layers of a `rough-map map` folder (MAP_DIR/map_class.tif, map_far_class.tif
+with near-to-far; count bands of map.tif; the path from labels.csv) against a class GeoTIFF
+in any CRS and resolution, reprojected onto the map's grid. Class names of the truth: a
+sidecar TRUTH.classes.json ({"0": "gravel", ...}) or TRUTH.classes.csv (value,name), band-1
+tags CLASS_<value>=<name> (as rough-map writes them) or GDAL category names; matched by
+name. Reports near-field (class) and far-field (far_class) accuracy, accuracy by distance
+from the path, the confusion matrix and the abstention rate (cells a layer observed but left
+unknown). `rough-map simulate` writes its true classes as world_truth.tif in this format.
+"""
 
 from __future__ import annotations
 
@@ -6,7 +16,7 @@ import argparse
 import itertools
 import math
 
-from rough_map.cli._common import emit_json, existing_path, positive_float, status
+from rough_map.cli._common import add_command, emit_json, existing_path, positive_float, status
 
 #: Upper edges of the distance bins, m (rough_map.evaluation.score.DEFAULT_BINS; not
 #: imported here, so that building the parser stays light).
@@ -33,21 +43,8 @@ def _bins(text: str) -> tuple[float, ...]:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "score",
-        help="score a map folder against a surveyed class raster (GeoTIFF)",
-        description=(
-            "Score the class layers of a `rough-map map` folder (MAP_DIR/map_class.tif, "
-            "map_far_class.tif with near-to-far; count bands of map.tif; the path from "
-            "labels.csv) against a class GeoTIFF in any CRS and resolution, reprojected onto "
-            "the map's grid. Class names of the truth: a sidecar TRUTH.classes.json "
-            '({"0": "gravel", ...}) or TRUTH.classes.csv (value,name), band-1 tags '
-            "CLASS_<value>=<name> (as rough-map writes them) or GDAL category names; matched "
-            "by name. Reports near-field (class) and far-field (far_class) accuracy, accuracy "
-            "by distance from the path, the confusion matrix and the abstention rate (cells "
-            "a layer observed but left unknown). `rough-map simulate` writes its true classes "
-            "as world_truth.tif in this format."
-        ),
+    p = add_command(
+        sub, "score", "score a map folder against a surveyed class raster (GeoTIFF)", __doc__
     )
     p.add_argument("map_dir", type=existing_path, help="folder written by rough-map map")
     p.add_argument(

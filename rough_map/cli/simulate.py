@@ -1,4 +1,20 @@
-"""``rough-map simulate``: a traverse over synthetic terrain, as the paper's experiments."""
+"""``rough-map simulate``: a traverse over synthetic terrain, as the paper's experiments.
+
+Build a terrain world laid out as the paper's experiments, drive a rover over it and write a
+traverse folder: range clouds in the vehicle frame, optionally the rendered stereo pair of
+an XB3-like rig, IMU roll/pitch, true labels and the true height field. Courses: mixed
+(concrete, dirt road, gravel, with a manhole), mixed-reverse, ploughed (42 m), compact (22
+m), random (all five surfaces). Each cloud keeps the points the features and the map use:
+the square of half side --cloud-extent (0.5 m) around the patch centre 1.0 m ahead, in the
+vehicle frame (x 0.5 to 1.5 m, y -0.5 to 0.5 m: the 0.896 m patch plus 52 mm for tilt
+compensation), recorded as metadata.cloud_extent in traverse.json. A 100 m course at 0.5 m/s
+and 2 Hz writes about 0.9 GB of float32 .npy clouds and a 0.2 GB world_truth.npz (1000 m: 9
+GB and 2 GB); --compress makes the clouds about 2.6 times smaller. A course up to 50 m is
+built whole, as it always was (up to 3 GB of memory, for ploughed soil); a longer one in 6 m
+tiles as the rover drives on, with world_truth.npz written in tiles of 8 m that readers take
+one at a time, so that memory stays near 0.6 GB without images and 0.95 GB with them,
+whatever the length.
+"""
 
 from __future__ import annotations
 
@@ -6,6 +22,7 @@ import argparse
 from pathlib import Path
 
 from rough_map.cli._common import (
+    add_command,
     non_negative_float,
     non_negative_int,
     positive_float,
@@ -17,27 +34,11 @@ from rough_map.simulate.world import COURSES
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
+    p = add_command(
+        sub,
         "simulate",
-        help="simulate a rover traverse (clouds, stereo images, labels, true terrain)",
-        description=(
-            "Build a terrain world laid out as the paper's experiments, drive a rover over it "
-            "and write a traverse folder: range clouds in the vehicle frame, optionally the "
-            "rendered stereo pair of an XB3-like rig, IMU roll/pitch, true labels and the "
-            "true height field. Courses: mixed (concrete, dirt road, gravel, with a manhole), "
-            "mixed-reverse, ploughed (42 m), compact (22 m), random (all five surfaces). "
-            "Each cloud keeps the points the features and the map use: the square of half "
-            "side --cloud-extent (0.5 m) around the patch centre 1.0 m ahead, in the vehicle "
-            "frame (x 0.5 to 1.5 m, y -0.5 to 0.5 m: the 0.896 m patch plus 52 mm for tilt "
-            "compensation), recorded as metadata.cloud_extent in traverse.json. A 100 m course "
-            "at 0.5 m/s and 2 Hz writes about 0.9 GB of float32 .npy clouds and a 0.2 GB "
-            "world_truth.npz (1000 m: 9 GB and 2 GB); --compress makes the clouds about 2.6 "
-            "times smaller. A course up to 50 m is built whole, as it always was (up to 3 GB "
-            "of memory, for ploughed soil); a longer one in 6 m tiles as the rover drives on, "
-            "with world_truth.npz written in tiles of 8 m that readers take one at a time, "
-            "so that memory stays near 0.6 GB without images and 0.95 GB with them, whatever "
-            "the length."
-        ),
+        "simulate a rover traverse (clouds, stereo images, labels, true terrain)",
+        __doc__,
     )
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="new folder")
     p.add_argument(

@@ -1,5 +1,12 @@
 """``rough-map stereo``: a stereo pair -> point cloud in the vehicle frame, and optionally the
-disparity map and the camera-frame points."""
+disparity map and the camera-frame points.
+
+Match a stereo pair with semi-global matching (rectifying it first if the calibration has
+distortion or rotations), triangulate, filter outliers and write the points in the vehicle
+frame (x forward, y left, z up, metres). By default only the image rows and disparities that
+see the patch of interest are matched and only the points over the patch are written;
+--full-frame matches every pixel over the disparities of --min-depth..--max-depth.
+"""
 
 from __future__ import annotations
 
@@ -11,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from rough_map._files import atomic_output
-from rough_map.cli._common import existing_path, finite_float, positive_float
+from rough_map.cli._common import add_command, existing_path, finite_float, positive_float
 from rough_map.errors import FileFormatError, PatchError
 from rough_map.io.pointcloud import write_cloud
 from rough_map.patch import PatchSpec
@@ -21,17 +28,8 @@ _PATCH = PatchSpec()
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "stereo",
-        help="point cloud of the patch ahead from a stereo pair (SGM)",
-        description=(
-            "Match a stereo pair with semi-global matching (rectifying it first if the "
-            "calibration has distortion or rotations), triangulate, filter outliers and write "
-            "the points in the vehicle frame (x forward, y left, z up, metres). By default "
-            "only the image rows and disparities that see the patch of interest are matched "
-            "and only the points over the patch are written; --full-frame matches every "
-            "pixel over the disparities of --min-depth..--max-depth."
-        ),
+    p = add_command(
+        sub, "stereo", "point cloud of the patch ahead from a stereo pair (SGM)", __doc__
     )
     p.add_argument(
         "left", type=existing_path, help="left (reference) image, any format OpenCV reads"
