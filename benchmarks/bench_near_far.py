@@ -27,7 +27,7 @@ For each traverse it prints
 * the time per frame: reading the image, tile features, predict, update (wall clock, the
   median over frames; the load average is printed because other processes slow it down).
 
-``--photos`` instead runs :func:`rough_map.map.near_far.run_traverse` (labels settled over
+``--photos`` instead runs :func:`rough_map.near_far.run_traverse` (labels settled over
 3 frames) on flat worlds textured with scikit-image's CC0 ground photographs
 (:mod:`rough_map.simulate.photo_ground`; brick, gravel, grass, moon), in colour and in grey,
 with near labels lagging a change of ground by two frames and one wrong frame mid-way
@@ -49,11 +49,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from rough_map import near_far as nf
 from rough_map.evaluation.near_far import area_coverage, far_field_accuracy, world_class
 from rough_map.geometry import pose_matrix
 from rough_map.io.traverse import Traverse, load_traverse
 from rough_map.io.truth import TRUTH_FILE, load_world
-from rough_map.map import near_far as nf
 from rough_map.patch import Extraction
 from rough_map.simulate.world import CLASS_NAMES
 from rough_map.types import HeightField

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from rough_map import near_far as n2f
 from rough_map._files import PathLike, output_set
 from rough_map.classify import (
     RoughnessLevels,
@@ -47,7 +48,6 @@ from rough_map.filter import smooth_table
 from rough_map.io.traverse import Traverse, load_traverse
 from rough_map.io.truth import World, traverse_truth
 from rough_map.map import GridMap, fuse_cell_probabilities
-from rough_map.map import near_far as n2f
 from rough_map.map.fusion import log_fused
 from rough_map.map.grid_geometry import check_map_memory
 from rough_map.map.tiles import is_accumulator
@@ -366,7 +366,7 @@ def _near_to_far(
 ) -> tuple[list[n2f.FarPrediction], dict[str, Any]]:
     """Near-to-far along the traverse, fused into the map's far layers; the predictions
     and the coverage report (with the far-field accuracy when the world is known). Only
-    settled, confident near labels teach it (:func:`rough_map.map.near_far.run_traverse`)."""
+    settled, confident near labels teach it (:func:`rough_map.near_far.run_traverse`)."""
     labels = np.where(pred.valid, pred.filtered_class, "")
     calib = result.traverse.spec.calibration
     far = n2f.run_traverse(

@@ -459,7 +459,7 @@ def test_image_bombs(bases: dict[str, bytes], tmp_path: Path) -> None:
 
 
 def test_read_bgr_checks_sizes(bases: dict[str, bytes], tmp_path: Path) -> None:
-    from rough_map.map.near_far.tiles import read_bgr
+    from rough_map.near_far.tiles import read_bgr
 
     (tmp_path / "i.png").write_bytes(bases["i.png"])
     assert read_bgr(tmp_path / "i.png").shape == (24, 32, 3)

@@ -31,8 +31,8 @@ from rough_map.filter.roughness import load_roughness_smoother
 from rough_map.io.traverse import load_traverse
 from rough_map.io.truth import TiledWorldWriter, load_world, open_world, save_world
 from rough_map.io.truth_raster import read_class_names
-from rough_map.map.near_far.settings import load_near_far_settings
 from rough_map.map.state import iter_state_tiles, read_state_meta, write_state
+from rough_map.near_far.settings import load_near_far_settings
 from rough_map.resources import config_file
 from rough_map.stereo import StereoConfig, load_calibration
 from rough_map.types import HeightField

@@ -23,7 +23,7 @@ from rough_map.errors import InputError, NotFittedError
 from rough_map.evaluation.near_far import area_coverage, far_field_accuracy, world_class
 from rough_map.geometry import ground_to_pixel, pixel_to_ground, pose_matrix
 from rough_map.io.traverse import Traverse, save_traverse
-from rough_map.map.near_far import (
+from rough_map.near_far import (
     FarPrediction,
     LooksClassifier,
     NearToFar,

@@ -18,7 +18,7 @@ from test_near_far import PATCH, TILE, scaled_calibration
 
 from rough_map.evaluation.near_far import far_field_accuracy
 from rough_map.evaluation.near_far_path import path_band_accuracy
-from rough_map.map.near_far import FarPrediction, NearToFar, run_traverse, settled
+from rough_map.near_far import FarPrediction, NearToFar, run_traverse, settled
 from rough_map.simulate.photo_ground import (
     PHOTOS,
     PhotoGround,

@@ -23,8 +23,8 @@ from rough_map.features.traverse import start_frame_pass
 from rough_map.io.model_files import model_paths
 from rough_map.io.traverse import load_traverse
 from rough_map.map import fuse_traverse
-from rough_map.map.near_far import NearFarSettings
 from rough_map.map.tiles import TiledMap
+from rough_map.near_far import NearFarSettings
 from rough_map.online import OnlineMapper
 from rough_map.patch import Extraction
 from rough_map.resources import model_base

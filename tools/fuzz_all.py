@@ -83,8 +83,8 @@ PRELOAD = """rough_map.io.pointcloud rough_map.io.las rough_map.io.images rough_
 rough_map.io.truth rough_map.io.truth_raster rough_map.io.rosbag.reader
 rough_map.io.rosbag.importer rough_map.export.gridmap_msg rough_map.features rough_map.config
 rough_map.stereo.rectify rough_map.stereo.settings rough_map.classify.persistence
-rough_map.classify.levels rough_map.filter.roughness rough_map.map.near_far.settings
-rough_map.map.near_far.tiles rough_map.map.state rough_map.evaluation.score_files rough_map.psd
+rough_map.classify.levels rough_map.filter.roughness rough_map.near_far.settings
+rough_map.near_far.tiles rough_map.map.state rough_map.evaluation.score_files rough_map.psd
 rough_map.patch laspy open3d cv2 rasterio skops.io sklearn.ensemble rosbags.highlevel yaml
 pandas pyarrow.parquet""".split()
 

@@ -94,7 +94,7 @@ def _configs(root: Path, rng: random.Random) -> Any:
     from rough_map.classify.levels import load_roughness_levels
     from rough_map.config import load_mapping
     from rough_map.filter.roughness import load_roughness_smoother
-    from rough_map.map.near_far.settings import load_near_far_settings
+    from rough_map.near_far.settings import load_near_far_settings
     from rough_map.stereo.settings import StereoConfig
 
     calls = [
@@ -181,7 +181,7 @@ def _kitti(path: Path) -> Any:
 
 def _image(path: Path) -> Any:
     from rough_map.io.images import read_image
-    from rough_map.map.near_far.tiles import read_bgr
+    from rough_map.near_far.tiles import read_bgr
 
     return read_image(path), read_bgr(path)
 

@@ -364,7 +364,7 @@ def _shipped_near_far() -> dict[str, Any]:
 def near_far_settings(args: argparse.Namespace) -> Any:
     """The near-to-far settings of :func:`add_map_args`' options: the config file's (or the
     shipped one's), with the values given on the command line replacing its own."""
-    from rough_map.map.near_far import load_near_far_settings
+    from rough_map.near_far import load_near_far_settings
 
     settings = load_near_far_settings(args.near_far_config)
     update = {

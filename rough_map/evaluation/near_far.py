@@ -4,7 +4,7 @@ by distance, and the ground area covered with and without the far field.
 The world is a :class:`~rough_map.types.HeightField` with a class map or a
 :class:`~rough_map.io.truth.TiledWorld` (a long world, read a tile at a time), e.g. from
 :func:`rough_map.io.truth.traverse_truth` on a simulated traverse; the predictions come
-from :func:`rough_map.map.near_far.run_traverse`.
+from :func:`rough_map.near_far.run_traverse`.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from numpy.typing import ArrayLike, NDArray
 from rough_map.errors import InputError
 from rough_map.geometry import pose_matrix
 from rough_map.io.truth import TiledWorld, World
-from rough_map.map.near_far import FarPrediction, NearField
+from rough_map.near_far import FarPrediction, NearField
 from rough_map.patch import Extraction, PatchSpec
 
 __all__ = [
@@ -91,7 +91,7 @@ class AccuracyTable:
         Confidence threshold.
     n_abstained : ndarray of int, shape (B,)
         Cells in view that the model left unknown per bin (whatever the world holds there;
-        :attr:`~rough_map.map.near_far.FarPrediction.abstained`).
+        :attr:`~rough_map.near_far.FarPrediction.abstained`).
     """
 
     edges: NDArray[np.float64]
@@ -177,7 +177,7 @@ def far_field_accuracy(
     Parameters
     ----------
     predictions : sequence of FarPrediction
-        E.g. from :func:`rough_map.map.near_far.run_traverse`.
+        E.g. from :func:`rough_map.near_far.run_traverse`.
     world : HeightField or TiledWorld
         The true world, with ``classes`` and ``class_names``; predictions are compared with
         the class of the world cell nearest to their (x, y). Cells outside the world (or of a
@@ -272,7 +272,7 @@ def area_coverage(
     Parameters
     ----------
     predictions : sequence of FarPrediction
-        Far-field predictions, e.g. from :func:`rough_map.map.near_far.run_traverse`.
+        Far-field predictions, e.g. from :func:`rough_map.near_far.run_traverse`.
     poses : array_like, shape (F, 6)
         Poses of every frame whose near-field patch geometry classified, ``(x, y, z, roll,
         pitch, yaw)`` in m and rad (:meth:`Traverse.poses`).

@@ -21,7 +21,7 @@ from rough_map.errors import InputError
 from rough_map.evaluation.near_far import class_remap, world_class
 from rough_map.geometry import pose_matrix
 from rough_map.io.truth import World
-from rough_map.map.near_far import FarPrediction, NearField
+from rough_map.near_far import FarPrediction, NearField
 from rough_map.patch import Extraction, PatchSpec
 
 __all__ = ["PathBand", "path_band_accuracy"]
@@ -76,7 +76,7 @@ def path_band_accuracy(
     Parameters
     ----------
     predictions : sequence of FarPrediction
-        With ``frame`` set (:func:`rough_map.map.near_far.run_traverse`); recalled cells
+        With ``frame`` set (:func:`rough_map.near_far.run_traverse`); recalled cells
         are left out.
     world : HeightField or TiledWorld
         The true world, with a class map.

@@ -1,4 +1,4 @@
-"""Grid maps of roughness and terrain class: geometry, named layers, fusion, near-to-far.
+"""Grid maps of roughness and terrain class: geometry, named layers, fusion.
 
 :mod:`rough_map.map.grid_geometry` says where a map lies (:class:`GridGeometry`);
 :mod:`rough_map.map.grid` holds the layer container and the conversion to grid_map's
@@ -7,9 +7,8 @@ conventions; :mod:`rough_map.map.footprints` finds the cells of a vehicle's patc
 :mod:`rough_map.map.fusion` fuses the patches of a traverse and far-field predictions into
 them; :mod:`rough_map.map.tiles` holds a map of any extent in lattice tiles kept on disk
 when far from the vehicle (:class:`~rough_map.map.tiles.TiledMap`), and
-:mod:`rough_map.map.state` their sums in one file. :mod:`rough_map.map.near_far` (imported
-on its own: it needs OpenCV and scikit-learn) learns the look of the near field and
-predicts the far field.
+:mod:`rough_map.map.state` their sums in one file. The near-to-far stage,
+:mod:`rough_map.near_far`, is a learned stage of its own above this one.
 """
 
 from rough_map.errors import EmptyMapWarning

@@ -14,7 +14,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from rough_map.config import StereoCalibration, load_model
-from rough_map.map.near_far.cells import NearField
+from rough_map.near_far.cells import NearField
 from rough_map.patch import Extraction, PatchSpec
 from rough_map.resources import config_file
 
@@ -48,7 +48,7 @@ class NearFarSettings(BaseModel):
     calibrate : bool
         Calibrate the confidence on predictions the near field checked later, and abstain
         until far predictions of two classes were checked
-        (:mod:`rough_map.map.near_far.calibration`); false trusts the looks' own
+        (:mod:`rough_map.near_far.calibration`); false trusts the looks' own
         probabilities (a few frames of a short traverse are not enough to check them).
     """
 

@@ -96,13 +96,13 @@ in colour (different roughness of the same material) cannot be told apart by thi
 the near field is then the only source of their class.
 """
 
-from rough_map.map.near_far.cells import NearField
-from rough_map.map.near_far.looks import DEFAULT_MIN_STD, Looks, LooksClassifier
-from rough_map.map.near_far.model import NearToFar
-from rough_map.map.near_far.prediction import FarPrediction
-from rough_map.map.near_far.run import run_traverse, settled
-from rough_map.map.near_far.settings import NearFarSettings, load_near_far_settings
-from rough_map.map.near_far.tiles import FEATURE_NAMES, tile_features
+from rough_map.near_far.cells import NearField
+from rough_map.near_far.looks import DEFAULT_MIN_STD, Looks, LooksClassifier
+from rough_map.near_far.model import NearToFar
+from rough_map.near_far.prediction import FarPrediction
+from rough_map.near_far.run import run_traverse, settled
+from rough_map.near_far.settings import NearFarSettings, load_near_far_settings
+from rough_map.near_far.tiles import FEATURE_NAMES, tile_features
 
 __all__ = [
     "DEFAULT_MIN_STD",

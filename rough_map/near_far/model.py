@@ -1,9 +1,9 @@
 """The near-to-far estimator: learn the look of the near field, classify the far field.
 
-See :mod:`rough_map.map.near_far` for the method; this module holds :class:`NearToFar`, which
-ties the tiles (:mod:`~rough_map.map.near_far.tiles`), the appearance model
-(:mod:`~rough_map.map.near_far.looks`) and the ground cells
-(:mod:`~rough_map.map.near_far.cells`) together, frame by frame.
+See :mod:`rough_map.near_far` for the method; this module holds :class:`NearToFar`, which
+ties the tiles (:mod:`~rough_map.near_far.tiles`), the appearance model
+(:mod:`~rough_map.near_far.looks`) and the ground cells
+(:mod:`~rough_map.near_far.cells`) together, frame by frame.
 """
 
 from __future__ import annotations
@@ -20,12 +20,12 @@ from sklearn.base import BaseEstimator
 from rough_map.config import Pose, StereoCalibration
 from rough_map.errors import InputError, NotFittedError
 from rough_map.geometry import pose_matrix
-from rough_map.map.near_far.calibration import DistanceCalibration, apply_confidence, top_logit
-from rough_map.map.near_far.cells import GroundCells, NearField, cells_in_view
-from rough_map.map.near_far.checks import check_numbers, class_weights
-from rough_map.map.near_far.looks import DEFAULT_MIN_STD, Looks, LooksClassifier
-from rough_map.map.near_far.prediction import FarPrediction
-from rough_map.map.near_far.tiles import (
+from rough_map.near_far.calibration import DistanceCalibration, apply_confidence, top_logit
+from rough_map.near_far.cells import GroundCells, NearField, cells_in_view
+from rough_map.near_far.checks import check_numbers, class_weights
+from rough_map.near_far.looks import DEFAULT_MIN_STD, Looks, LooksClassifier
+from rough_map.near_far.prediction import FarPrediction
+from rough_map.near_far.tiles import (
     FEATURE_NAMES,
     TileGeometry,
     check_image,
@@ -46,7 +46,7 @@ class NearToFar(BaseEstimator):
     the constructor only stores its arguments; they are checked at the first
     :meth:`update`, and the appearance parameters (``novelty_alpha``, ``outlier_k``,
     ``min_std``, ``min_support``, ``max_looks``) are read then, by the
-    :class:`~rough_map.map.near_far.looks.LooksClassifier` it builds (``appearance_``, the
+    :class:`~rough_map.near_far.looks.LooksClassifier` it builds (``appearance_``, the
     model's X, y interface on tile features). The others are read at every frame.
 
     Parameters
@@ -76,8 +76,8 @@ class NearToFar(BaseEstimator):
         Fewest near-field tiles an update needs; fewer (the patch out of view) raises.
     min_std : sequence of 6 float
         Lowest standard deviation of each feature within a class (units of
-        :data:`~rough_map.map.near_far.tiles.FEATURE_NAMES`), see
-        :data:`~rough_map.map.near_far.looks.DEFAULT_MIN_STD`.
+        :data:`~rough_map.near_far.tiles.FEATURE_NAMES`), see
+        :data:`~rough_map.near_far.looks.DEFAULT_MIN_STD`.
     recall : bool
         Remember the appearance of the cells that were unfamiliar when seen (at their
         closest sighting) and predict them, once, as soon as an update makes them familiar:
@@ -100,9 +100,9 @@ class NearToFar(BaseEstimator):
     calibrate : bool
         Calibrate the confidence on checked predictions: near-field batches scored before
         they are learnt, and far cells scored once the near field labels them (by the
-        distance they were predicted from; :mod:`~rough_map.map.near_far.calibration`).
+        distance they were predicted from; :mod:`~rough_map.near_far.calibration`).
         The far cells are checked only when :meth:`update_tiles` gets the frame's pose
-        (:meth:`update`, :func:`~rough_map.map.near_far.run_traverse` pass it).
+        (:meth:`update`, :func:`~rough_map.near_far.run_traverse` pass it).
     recall_min_confidence : float
         A remembered cell is recalled only if its calibrated probability reaches this
         (and ``min_confidence``): a recall labels ground that is no longer in view, all at
@@ -302,7 +302,7 @@ class NearToFar(BaseEstimator):
         *,
         check: bool = True,
     ) -> NearToFar:
-        """:meth:`update` from the image's :func:`~rough_map.map.near_far.tiles.tile_features`
+        """:meth:`update` from the image's :func:`~rough_map.near_far.tiles.tile_features`
         (of ``tile_px`` px), e.g. computed once for :meth:`predict_tiles` and this. With
         ``check``, :meth:`check_tiles` first."""
         near = self._near_batch(calib)
@@ -324,7 +324,7 @@ class NearToFar(BaseEstimator):
         the near-field tiles are scored before they are learnt (held out) and, with the
         ``pose``, the far-field predictions made earlier of the cells under the near field
         are scored against the label. Any label may check, a settled one or not
-        (:func:`~rough_map.map.near_far.run_traverse` checks every frame and learns only
+        (:func:`~rough_map.near_far.run_traverse` checks every frame and learns only
         the settled ones)."""
         near = self._near_batch(calib)
         target = self._target(near_label)
@@ -370,12 +370,12 @@ class NearToFar(BaseEstimator):
 
     def predict_proba_features(self, features: ArrayLike) -> NDArray[np.float64]:
         """Class probabilities of tile feature rows
-        (:meth:`~rough_map.map.near_far.looks.LooksClassifier.predict_proba`).
+        (:meth:`~rough_map.near_far.looks.LooksClassifier.predict_proba`).
 
         Parameters
         ----------
         features : array_like, shape (N, 6)
-            Tile features (:func:`~rough_map.map.near_far.tiles.tile_features`).
+            Tile features (:func:`~rough_map.near_far.tiles.tile_features`).
 
         Returns
         -------
@@ -450,7 +450,7 @@ class NearToFar(BaseEstimator):
         frame: int | None = None,
     ) -> FarPrediction:
         """:meth:`predict` from the image's
-        :func:`~rough_map.map.near_far.tiles.tile_features` (of ``tile_px`` px)."""
+        :func:`~rough_map.near_far.tiles.tile_features` (of ``tile_px`` px)."""
         transform = pose_matrix(pose)
         if not hasattr(self, "looks_"):
             self._not_fitted()

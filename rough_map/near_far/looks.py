@@ -42,7 +42,7 @@ log = logging.getLogger(__name__)
 __all__ = ["DEFAULT_MIN_STD", "Looks", "LooksClassifier", "inliers", "main_look"]
 
 #: Default lowest standard deviation of a class per tile feature (units of
-#: :data:`rough_map.map.near_far.tiles.FEATURE_NAMES`). Measured on rendered terrain, a
+#: :data:`rough_map.near_far.tiles.FEATURE_NAMES`). Measured on rendered terrain, a
 #: class's far-field tile means stay within about 0.5 L*, 0.05 a* and 0.1 b* of its
 #: near-field means, and its log-stds drift by up to 0.4 (L*, fine texture fading with
 #: distance) and 0.08 (a*, b*).
@@ -170,7 +170,7 @@ class LooksClassifier(ClassifierMixin, BaseEstimator):
     """Classifier of tile features by the looks of their classes (see the module notes).
 
     Learnt online, one near-field batch at a time (:meth:`learn`, :meth:`partial_fit`);
-    :class:`~rough_map.map.near_far.NearToFar` feeds it one batch per frame.
+    :class:`~rough_map.near_far.NearToFar` feeds it one batch per frame.
 
     Parameters
     ----------

@@ -1,4 +1,4 @@
-"""Checks of :class:`~rough_map.map.near_far.NearToFar`'s parameters and near labels."""
+"""Checks of :class:`~rough_map.near_far.NearToFar`'s parameters and near labels."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from rough_map.errors import InputError
-from rough_map.map.near_far.cells import NearField
+from rough_map.near_far.cells import NearField
 
 __all__ = ["check_numbers", "class_weights"]
 

@@ -12,9 +12,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from rough_map.errors import InputError
-from rough_map.map.near_far.model import NearToFar
-from rough_map.map.near_far.prediction import FarPrediction
-from rough_map.map.near_far.tiles import check_image, read_bgr, tile_features
+from rough_map.near_far.model import NearToFar
+from rough_map.near_far.prediction import FarPrediction
+from rough_map.near_far.tiles import check_image, read_bgr, tile_features
 from rough_map.patch import Extraction, PatchSpec
 
 if TYPE_CHECKING:
@@ -93,7 +93,7 @@ def run_traverse(
     progress : bool
         Show a progress bar on stderr.
     **kwargs
-        Passed to :class:`~rough_map.map.near_far.NearToFar`.
+        Passed to :class:`~rough_map.near_far.NearToFar`.
 
     Returns
     -------

@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from rough_map.config import StereoCalibration
 from rough_map.errors import InputError
 from rough_map.geometry import ground_to_pixel
-from rough_map.map.near_far.tiles import TileGeometry
+from rough_map.near_far.tiles import TileGeometry
 from rough_map.patch import Extraction, PatchSpec
 
 __all__ = ["GroundCells", "NearField", "cells_in_view"]
