@@ -1,9 +1,9 @@
 """The public estimator: :func:`patch_roughness`, :func:`patch_roughness_batch`,
 :func:`profile_psd` (the method is described in :mod:`rough_map.psd`).
 
-These are thin wrappers in the manner of :func:`scipy.signal.welch`: they check the input,
-apply the gap policy (:mod:`rough_map.psd._spectra`), compute the spectra
-(:mod:`rough_map.psd._spectra`) and fit them (:mod:`rough_map.psd._fit`).
+These are thin wrappers in the manner of :func:`scipy.signal.welch`, taking one
+:class:`~rough_map.psd.Options`: they check the input, apply the gap policy and compute the
+spectra (:mod:`rough_map.psd._spectra`) and fit them (:mod:`rough_map.psd._fit`).
 """
 
 from __future__ import annotations
