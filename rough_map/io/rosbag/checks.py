@@ -10,9 +10,12 @@ The crash this walk prevents: rosbags (0.11) decompresses every chunk whole in m
 chunk bomb (a valid bag of 1.3 MB whose lz4 chunk expands to 300 MiB took 300+ MiB more;
 one of a hundred MB takes more than the machine has) ends in the kernel's OOM killer. The
 walk finds every chunk and decompresses it in dropped 1 MiB steps against its declared size
-and ``LIMITS.bag_chunk`` (``tests/test_library_crashes.py`` shows the blow-up). The other
-checks (record lengths, indices, ``metadata.yaml``) turn what rosbags raises late or as
-another error into one line naming the record; they prevent no crash.
+and ``LIMITS.bag_chunk`` (``tests/test_library_crashes.py`` shows the blow-up). The checks
+of ``metadata.yaml`` prevent hangs and escapes: a list of 20,000 storage files made rosbags
+hang, a 500 kB list in one field took its YAML parser 16 s of CPU, and a path may leave the
+bag folder (``tests/test_bag_hardening.py``). The record lengths and indices, checked on the
+way, turn what rosbags raises late or as another error into one line naming the record;
+they prevent no crash.
 
 Every problem is a :class:`rough_map.errors.FileFormatError` naming the file and the
 record or field.
