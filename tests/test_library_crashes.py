@@ -46,10 +46,9 @@ def _assert_crashes(proc: subprocess.CompletedProcess[str], what: str) -> None:
 
 
 def test_open3d_pcd_reader_segfaults_on_a_lone_normal_field(tmp_path: Path) -> None:
-    """A well-formed PCD whose fields are x, y, z and normal_x alone: open3d's reader writes
-    three normal components per point and dies (SIGSEGV, open3d 0.20). rough_map reads PCD and
-    PLY with its own numpy reader (:mod:`rough_map.io.ply_pcd`), which takes x, y, z and
-    skips the other fields."""
+    """A well-formed PCD whose fields are x, y, z and normal_x alone: open3d's reader dies on
+    it (SIGSEGV, open3d 0.20). rough_map reads PCD and PLY with its own numpy reader
+    (:mod:`rough_map.io.ply_pcd`), which takes x, y, z and skips the other fields."""
     xyz = np.random.default_rng(0).normal(size=(100, 4)).astype("<f4")
     header = (
         "# .PCD v0.7\nVERSION 0.7\nFIELDS x y z normal_x\nSIZE 4 4 4 4\nTYPE F F F F\n"
