@@ -26,8 +26,10 @@ _LIBRARY = """
 import sys
 from pathlib import Path
 from rough_map.classify import load_terrain_model
+from rough_map.io.traverse import load_traverse
 from rough_map.workflow import analyse, write_outputs
-result = analyse(sys.argv[1], load_terrain_model("default"), n_jobs=int(sys.argv[3]))
+traverse = load_traverse(sys.argv[1])
+result = analyse(traverse, load_terrain_model("default"), n_jobs=int(sys.argv[3]))
 write_outputs(result, Path(sys.argv[2]), png=False)
 """
 

@@ -52,7 +52,7 @@ from rough_map.export import export_map
 from rough_map.io.traverse import find_traverse_file, load_traverse
 from rough_map.map.tiles import TiledMap
 from rough_map.resources import model_base
-from rough_map.workflow import analyse, summary, write_outputs
+from rough_map.workflow import AnalysisOptions, analyse_model_file, summary, write_outputs
 
 log = logging.getLogger(__name__)
 
@@ -150,12 +150,10 @@ def map_traverse_files(job: BatchJob) -> dict[str, bytes]:
     clean_dead_temp_dirs(_BATCH_PREFIX)
     tmp = Path(tempfile.mkdtemp(prefix=f"{_BATCH_PREFIX}{os.getpid()}_"))
     try:
-        result = analyse(
+        result = analyse_model_file(
             load_traverse(job.traverse, allow_outside=job.allow_outside),
             _model_file(job.model),
-            resolution=job.resolution,
-            near_far=job.near_far,
-            n_jobs=job.n_jobs,
+            AnalysisOptions(resolution=job.resolution, near_far=job.near_far, n_jobs=job.n_jobs),
         )
         write_outputs(result, tmp, png=job.png, as_set=False)
         if result.mapper is not None:

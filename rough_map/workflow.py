@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 import math
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -45,7 +45,7 @@ from rough_map.features import (
 )
 from rough_map.features.traverse import start_frame_pass, traverse_pass
 from rough_map.filter import smooth_table
-from rough_map.io.traverse import Traverse, load_traverse
+from rough_map.io.traverse import Traverse
 from rough_map.io.truth import World, traverse_truth
 from rough_map.map import GridMap, fuse_cell_probabilities
 from rough_map.map.fusion import log_fused
@@ -80,8 +80,10 @@ ROUGHNESS_SOURCES = ("raw", "smoothed")
 __all__ = [
     "MAP_OUTPUTS",
     "ROUGHNESS_SOURCES",
+    "AnalysisOptions",
     "TraverseAnalysis",
     "analyse",
+    "analyse_model_file",
     "coverage_report",
     "level_edges",
     "summary",
@@ -144,49 +146,20 @@ class TraverseAnalysis:
         return truth_accuracy(self.map, self.truth())
 
 
-def analyse(
-    traverse: Traverse | PathLike,
-    model: TerrainModel | PathLike | None = None,
-    *,
-    features: FeatureTable | None = None,
-    resolution: float = 0.1,
-    near_far: str | bool = "auto",
-    far_weight: float = 0.3,
-    near_far_settings: n2f.NearFarSettings | None = None,
-    roughness: str = "raw",
-    n_jobs: int = 1,
-    progress: bool = False,
-    frames: FrameStream | None = None,
-) -> TraverseAnalysis:
-    """Run the chain on a traverse.
+@dataclass(frozen=True)
+class AnalysisOptions:
+    """Options of :func:`analyse`, checked when made (:class:`InputError`).
 
-    One pass over the frames (each cloud read once, on ``n_jobs`` processes) gives the
-    features and the heights; an :class:`~rough_map.online.OnlineMapper` fuses them into a
-    tiled map kept in bounded memory; the model classifies the frames and filters the
-    classes over the whole path, and their posteriors are fused in a second pass over the
-    poses (no cloud is read again).
-
-    Parameters
+    Attributes
     ----------
-    traverse : Traverse or path
-        The traverse.
-    model : TerrainModel or path, optional
-        Terrain model (or its name or file, read by
-        :func:`rough_map.classify.load_terrain_model`); without one the map has
-        roughness layers only.
-    features : FeatureTable, optional
-        Precomputed features (else computed with the model's extraction settings); the
-        clouds are still read once, for the elevation.
     resolution : float
         Map cell size in m.
     near_far : {"auto", True, False}
         Learn appearance near the rover and predict far away ("auto": when the frames have
         images and there is a model).
-    far_weight : float
-        Weight of a far-field prediction relative to a near-field observation.
     near_far_settings : NearFarSettings, optional
-        Tile size, range, weight (replacing ``far_weight``), confidence threshold and
-        label settling of near-to-far; default the shipped ``configs/near_far.yaml``.
+        Tile size, range, weight, confidence threshold and label settling of near-to-far;
+        default the shipped ``configs/near_far.yaml``.
     roughness : {"raw", "smoothed"}
         The R and w the map fuses: each frame's own (``"raw"``, the default), or those
         smoothed along the path (:class:`rough_map.filter.RoughnessSmoother`, the
@@ -199,81 +172,129 @@ def analyse(
         Worker processes for the frames (-1: every core); the result is the same for any.
     progress : bool
         Progress bars on stderr.
+    """
+
+    resolution: float = 0.1
+    near_far: str | bool = "auto"
+    near_far_settings: n2f.NearFarSettings | None = None
+    roughness: str = "raw"
+    n_jobs: int = 1
+    progress: bool = False
+
+    def __post_init__(self) -> None:
+        if self.roughness not in ROUGHNESS_SOURCES:
+            raise InputError(f"roughness must be 'raw' or 'smoothed'; got {self.roughness!r}")
+        if self.near_far not in ("auto", True, False):
+            raise InputError(f"near_far must be 'auto', True or False; got {self.near_far!r}")
+
+    @classmethod
+    def of(cls, options: AnalysisOptions | None, changes: dict[str, Any]) -> AnalysisOptions:
+        """``options`` (default: the defaults) with the keyword ``changes``."""
+        unknown = sorted(set(changes) - {f.name for f in fields(cls)})
+        if unknown:
+            raise InputError(f"analyse() got unexpected keyword arguments {unknown[:5]}")
+        return replace(options or cls(), **changes)
+
+
+def analyse(
+    traverse: Traverse,
+    model: TerrainModel | None = None,
+    options: AnalysisOptions | None = None,
+    *,
+    frames: FrameStream | None = None,
+    **changes: Any,
+) -> TraverseAnalysis:
+    """Run the chain on a traverse.
+
+    One pass over the frames (each cloud read once, on ``n_jobs`` processes) gives the
+    features and the heights; an :class:`~rough_map.online.OnlineMapper` fuses them into a
+    tiled map kept in bounded memory; the model classifies the frames and filters the
+    classes over the whole path, and their posteriors are fused in a second pass over the
+    poses (no cloud is read again).
+
+    Parameters
+    ----------
+    traverse : Traverse
+        The traverse (:func:`rough_map.io.traverse.load_traverse` reads one).
+    model : TerrainModel, optional
+        Terrain model (:func:`rough_map.classify.load_terrain_model` reads one); without
+        one the map has roughness layers only.
+    options : AnalysisOptions, optional
+        The options (:class:`AnalysisOptions`, each with its unit); default the defaults.
     frames : FrameStream, optional
-        The frame pass, already started on this traverse with the model's extraction
-        (:func:`rough_map.features.traverse.start_frame_pass`, as ``rough-map map`` does
-        before it imports scikit-learn). Without it, a model given by name or path has its
-        pass started from its card before it loads, when ``n_jobs`` is more than one.
+        The frame pass, already started on this traverse from the model's card
+        (:func:`rough_map.features.traverse.start_frame_pass`), as ``rough-map map`` does
+        before it imports scikit-learn and loads the model (``benchmarks/bench_startup.py``);
+        checked against the model. Default: started here.
+    **changes
+        Fields of ``options`` changed by keyword (``near_far=False``).
 
     Raises
     ------
     InputError
-        An unknown ``roughness``; ``frames`` with ``features``, or set up for another
+        Bad options, a traverse or model of another type, ``frames`` set up for another
         traverse; see also the stages.
     ModelError
-        ``frames`` set up with another feature extraction than the model's (its card's,
+        ``frames`` started with another feature extraction than the model's (its card's,
         which is not covered by the model file's sha256, edited or of another model).
     """
-    if roughness not in ROUGHNESS_SOURCES:
-        raise InputError(f"roughness must be 'raw' or 'smoothed'; got {roughness!r}")
-    traverse = traverse if isinstance(traverse, Traverse) else load_traverse(traverse)
+    opt = AnalysisOptions.of(options, changes)
+    if not isinstance(traverse, Traverse):
+        raise InputError(
+            f"analyse takes a Traverse (rough_map.io.traverse.load_traverse reads one), "
+            f"got {type(traverse).__name__}"
+        )
+    if model is not None and not isinstance(model, TerrainModel):
+        raise InputError(
+            f"analyse takes a TerrainModel or None (rough_map.classify.load_terrain_model "
+            f"reads one), got {type(model).__name__}"
+        )
+    resolution, progress = opt.resolution, opt.progress
     check_map_memory(traverse.poses()[:, :2], resolution)
-    if frames is None and features is None:
-        frames = start_frame_pass(
-            traverse, model, resolution=resolution, n_jobs=n_jobs, progress=progress
-        )
     try:
-        if frames is not None and features is not None:
-            raise InputError("give the features or a started frame pass, not both")
-        terrain_model: TerrainModel | None = (
-            model if model is None or isinstance(model, TerrainModel) else _load_model(model)
-        )
-        extraction = Extraction.from_dict(
-            terrain_model.extraction_ if terrain_model is not None else None
-        )
-        reading = extraction if terrain_model is None else terrain_model.reading()
+        extraction = Extraction.from_dict(model.extraction_ if model is not None else None)
+        reading = extraction if model is None else model.reading()
         if frames is not None and frames.settings.requested != reading:
-            raise ModelError(f"{model}: {_card_differs(frames.settings, reading)}")
+            raise ModelError(
+                f"{frames.card or 'the model'}: {_card_differs(frames.settings, reading)}"
+            )
         mapper = OnlineMapper(
-            terrain_model,
+            model,
             resolution=resolution,
             crs=traverse.spec.crs,
             calibration=traverse.spec.calibration,
             extraction=extraction,
             name=traverse.name,
         )
-        _frame_pass(
-            traverse, mapper, reading, features, n_jobs, progress, roughness == "raw", frames
-        )
+        _frame_pass(traverse, mapper, reading, opt, frames)
     except BaseException:
         if frames is not None:
             frames.close()
         raise
-    features = (features if features is not None else mapper.features()).require_valid()
-    prediction = terrain_model.predict(features) if terrain_model is not None else None
+    features = mapper.features().require_valid()
+    prediction = model.predict(features) if model is not None else None
     # the frames the class filter leaves out as isolated defects stay out of the smoothing
     defect = None if prediction is None or prediction.mode == "forward" else prediction.defect
     features = smooth_table(features, defect=defect)
     mapper.fuse_classes(
         prediction.filtered_proba if prediction is not None else None,
-        roughness=_smoothed(features) if roughness == "smoothed" else None,
+        roughness=_smoothed(features) if opt.roughness == "smoothed" else None,
         novelty=prediction.novelty if prediction is not None else None,
     )
     grid = mapper.finish()
     grid.attrs["traverse"] = traverse.name
     log_fused(len(features), np.asarray(features.valid, dtype=bool), grid, resolution)
-    result = TraverseAnalysis(traverse, features, prediction, grid, terrain_model, extraction)
+    result = TraverseAnalysis(traverse, features, prediction, grid, model, extraction)
     result.mapper = mapper
     has_images = any(f.left is not None for f in traverse.frames)
+    near_far = opt.near_far
     run_far = near_far is True or (near_far == "auto" and has_images and prediction is not None)
     if run_far:
         if not has_images:
             raise InputError(f"{traverse.name}: near-to-far needs stereo images in the frames")
         if prediction is None:
             raise InputError("near-to-far needs a terrain model to label the near field")
-        settings = near_far_settings or n2f.load_near_far_settings()
-        if near_far_settings is None:
-            settings = settings.model_copy(update={"weight": far_weight})
+        settings = opt.near_far_settings or n2f.load_near_far_settings()
         result.far, result.far_report = _near_to_far(result, prediction, settings, progress)
         far_sums = [n for n in grid.layers if n.startswith("far_") and is_accumulator(grid, n)]
         mapper.tiles.add_group("far")
@@ -281,42 +302,49 @@ def analyse(
     return result
 
 
+def analyse_model_file(
+    traverse: Traverse, model_file: PathLike, options: AnalysisOptions | None = None
+) -> TraverseAnalysis:
+    """:func:`analyse` with the model in a file: with more than one process, the frame pass
+    starts from the model's card (:func:`~rough_map.features.traverse.start_frame_pass`)
+    while the model loads, and :func:`analyse` checks the card against it."""
+    opt = options or AnalysisOptions()
+    frames = start_frame_pass(
+        traverse, model_file, resolution=opt.resolution, n_jobs=opt.n_jobs, progress=opt.progress
+    )
+    try:
+        model = _load_model(model_file)
+    except BaseException:
+        if frames is not None:
+            frames.close()
+        raise
+    return analyse(traverse, model, opt, frames=frames)
+
+
 def _frame_pass(
     traverse: Traverse,
     mapper: OnlineMapper,
     reading: Extraction,
-    features: FeatureTable | None,
-    n_jobs: int,
-    progress: bool,
-    roughness: bool = True,
-    frames: FrameStream | None = None,
+    opt: AnalysisOptions,
+    frames: FrameStream | None,
 ) -> None:
-    """Every frame through the mapper: features (unless given, read as ``reading`` says)
-    and heights, classes later; ``frames``: the pass, already started (checked to be this
-    one; its jobs are used)."""
-    jobs = frames.jobs if frames is not None else frame_jobs(traverse)
+    """Every frame through the mapper: features (read as ``reading`` says) and heights,
+    classes later; ``frames``: the pass, already started (checked to be this one)."""
     settings = traverse_pass(
-        traverse,
-        reading,
-        height_resolution=mapper.tiles.resolution,
-        features=features is None,
+        traverse, reading, height_resolution=mapper.tiles.resolution, features=True
     )
-    if features is not None and len(features) != len(jobs):
-        raise InputError(
-            f"{traverse.name}: the features have {len(features)} rows, the traverse "
-            f"{len(jobs)} frames"
-        )
-    if frames is not None and (frames.settings != settings or len(jobs) != len(traverse)):
+    if frames is not None and (frames.settings != settings or len(frames.jobs) != len(traverse)):
         raise InputError(f"{traverse.name}: the frame pass given was set up for another traverse")
+    jobs = frames.jobs if frames is not None else frame_jobs(traverse)
     outputs = (
         frames
         if frames is not None
-        else iter_frames(jobs, settings, n_jobs=n_jobs, progress=progress, desc=traverse.name)
+        else iter_frames(
+            jobs, settings, n_jobs=opt.n_jobs, progress=opt.progress, desc=traverse.name
+        )
     )
     for out in outputs:
-        if features is not None:
-            out = replace(out, row=features.row(out.index))
-        mapper.add(out, jobs[out.index].pose, classes=False, roughness=roughness)
+        mapper.add(out, jobs[out.index].pose, classes=False, roughness=opt.roughness == "raw")
 
 
 def _card_differs(started: FramePass, model: Extraction) -> str:

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from rough_map.classify import load_terrain_model
 from rough_map.cli._common import emit_json, mentions_default
 from rough_map.cli.main import build_parser, main
 from rough_map.errors import FileFormatError, InputError
@@ -543,7 +544,7 @@ def test_a_map_too_fine_for_the_memory_is_refused_up_front(
     assert "use a resolution of at least" in err and not (tmp_path / "m").exists()
     monkeypatch.setattr(grid_geometry, "memory_budget", lambda: 2**10)  # 1 kB
     with pytest.raises(InputError, match=r"beyond the 0\.0 GB a map may take here"):
-        analyse(small, "default", resolution=0.1, near_far=False)
+        analyse(load_traverse(small), load_terrain_model("default"), resolution=0.1, near_far=False)
 
 
 def test_classify_and_map_write_one_labels_schema(small: Path, tmp_path: Path, capsys) -> None:

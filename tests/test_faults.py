@@ -32,6 +32,7 @@ from rough_map._files import (
 )
 from rough_map.cli.main import main
 from rough_map.errors import FileFormatError
+from rough_map.io.traverse import load_traverse
 
 MAP_ARGS = ["--no-png", "--near-far", "off"]
 
@@ -182,7 +183,7 @@ def test_a_failure_half_way_leaves_the_old_set(
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr(wf, "write_tables", no_room)
-    result = wf.analyse(small_traverse, near_far=False)
+    result = wf.analyse(load_traverse(small_traverse), near_far=False)
     with pytest.raises(FileFormatError, match=r"out: cannot write: No space left on device$"):
         wf.write_outputs(result, out, png=False)
     assert _hashes(out) == before

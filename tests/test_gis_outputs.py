@@ -98,7 +98,7 @@ def test_the_path_and_frames_are_geojson_in_lon_lat(mapped: Path, small_traverse
 
 
 def test_a_local_frame_without_origin_stays_in_metres(small_traverse: Path) -> None:
-    result = analyse(small_traverse, None, near_far=False)
+    result = analyse(load_traverse(small_traverse), None, near_far=False)
     data = path_feature_collection(result.features, Crs(code="local"))
     assert "metres" in data["rough_map_crs"]
     xy = np.array([f["geometry"]["coordinates"] for f in data["features"][1:]])

@@ -28,7 +28,7 @@ from rough_map.near_far import NearFarSettings
 from rough_map.online import OnlineMapper
 from rough_map.patch import Extraction
 from rough_map.resources import model_base
-from rough_map.workflow import analyse, write_outputs
+from rough_map.workflow import AnalysisOptions, analyse, analyse_model_file, write_outputs
 
 
 @pytest.fixture(scope="module")
@@ -99,7 +99,7 @@ def test_height_sample_lands_in_the_right_world_cell() -> None:
 
 def test_map_is_the_table_fusion_with_spilled_tiles(small_traverse: Path, model) -> None:
     """The tiled, spilled map equals fusing the whole features table in one grid."""
-    result = analyse(small_traverse, model, near_far=False)
+    result = analyse(load_traverse(small_traverse), model, near_far=False)
     pred = result.prediction
     assert pred is not None
     names = tuple(str(c) for c in pred.classes)
@@ -125,7 +125,7 @@ def test_map_is_the_table_fusion_with_spilled_tiles(small_traverse: Path, model)
 def test_the_replay_grows_into_the_map(small_traverse: Path, model, roughness) -> None:
     """One window per valid frame, in time order; the map grows, and the last window reads
     what the final map reads over it (the replay fuses the same observations)."""
-    result = analyse(small_traverse, model, near_far=False, roughness=roughness)
+    result = analyse(load_traverse(small_traverse), model, near_far=False, roughness=roughness)
     assert result.mapper is not None
     updates = list(result.mapper.replay())
     assert len(updates) == int(result.features.valid.sum())
@@ -151,7 +151,7 @@ def test_the_replay_grows_into_the_map(small_traverse: Path, model, roughness) -
 def test_map_bag_has_one_gridmap_per_update(small_traverse: Path, model, tmp_path) -> None:
     from rough_map.export.gridmap_msg import read_gridmap_bag
 
-    result = analyse(small_traverse, model, near_far=False)
+    result = analyse(load_traverse(small_traverse), model, near_far=False)
     paths = write_outputs(result, tmp_path / "out", png=False, gridmap_bag=True)
     messages = read_gridmap_bag(paths["gridmap_bag"])
     valid = int(result.features.valid.sum())
@@ -162,7 +162,7 @@ def test_map_bag_has_one_gridmap_per_update(small_traverse: Path, model, tmp_pat
 
 
 def test_small_tiles_and_window_change_nothing(small_traverse: Path, model, monkeypatch) -> None:
-    ref = analyse(small_traverse, model, near_far=False).map
+    ref = analyse(load_traverse(small_traverse), model, near_far=False).map
     init = OnlineMapper.__init__
 
     def tiny(self, *args, **kwargs):
@@ -170,7 +170,7 @@ def test_small_tiles_and_window_change_nothing(small_traverse: Path, model, monk
         init(self, *args, **kwargs)
 
     monkeypatch.setattr(OnlineMapper, "__init__", tiny)
-    got = analyse(small_traverse, model, near_far=False, n_jobs=2).map
+    got = analyse(load_traverse(small_traverse), model, near_far=False, n_jobs=2).map
     assert sorted(got.layers) == sorted(ref.layers)
     for layer in ref.layers:
         assert np.array_equal(ref[layer], got[layer], equal_nan=True), layer
@@ -223,7 +223,7 @@ def test_tiled_map_bad_tile_size() -> None:
 
 
 def test_map_state_round_trip_and_fusion(small_traverse: Path, model, tmp_path: Path) -> None:
-    result = analyse(small_traverse, model, near_far=False)
+    result = analyse(load_traverse(small_traverse), model, near_far=False)
     assert result.mapper is not None
     path = result.mapper.save_state(tmp_path / "s.npz")
     back = TiledMap.open_saved(path)
@@ -251,7 +251,7 @@ def test_map_state_rejects_other_files(small_traverse: Path, tmp_path: Path) -> 
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
     with pytest.raises(FileFormatError, match=r"junk\.npz.*not a readable map state"):
         TiledMap(0.1).add_saved(tmp_path / "junk.npz")
-    result = analyse(small_traverse, None, near_far=False, resolution=0.2)
+    result = analyse(load_traverse(small_traverse), None, near_far=False, resolution=0.2)
     assert result.mapper is not None
     state = result.mapper.save_state(tmp_path / "coarse.npz")
     with pytest.raises(InputError, match=r"coarse\.npz: a map of 0\.2 m cells"):
@@ -263,8 +263,13 @@ def test_outputs_identical_for_any_jobs(
     small_traverse: Path, model, tmp_path: Path, by_name: bool
 ) -> None:
     """By name, ``-j 2`` starts the frames from the model's card before the model loads."""
+    trav = load_traverse(small_traverse)
     for n in (1, 2):
-        result = analyse(small_traverse, "default" if by_name else model, near_far=False, n_jobs=n)
+        options = AnalysisOptions(near_far=False, n_jobs=n)
+        if by_name:
+            result = analyse_model_file(trav, "default", options)
+        else:
+            result = analyse(trav, model, options)
         write_outputs(result, tmp_path / f"j{n}", png=False)
     names = sorted(p.name for p in (tmp_path / "j1").iterdir())
     assert names == sorted(p.name for p in (tmp_path / "j2").iterdir())
@@ -287,7 +292,9 @@ def test_state_keeps_the_far_field(imaged_traverse: Path, model, tmp_path: Path)
     # every label, uncalibrated: settled and calibrated, near-to-far abstains on this short
     # course (7 images, the class changing every 2 m)
     settings = NearFarSettings(calibrate=False, settle_frames=0)
-    result = analyse(imaged_traverse, model, near_far=True, near_far_settings=settings)
+    result = analyse(
+        load_traverse(imaged_traverse), model, near_far=True, near_far_settings=settings
+    )
     assert result.mapper is not None and "far_count" in result.map
     state = result.mapper.save_state(tmp_path / "s.npz")
     tiles = TiledMap.open_saved(state)
@@ -339,7 +346,7 @@ def test_a_card_that_lies_about_the_extraction_is_refused(small_traverse, tmp_pa
         match=r"m: the feature extraction on its card is not the "
         r"model's \(spacing 0\.016 against 0\.008\)",
     ):
-        analyse(small_traverse, tmp_path / "m", near_far=False, n_jobs=2)
+        analyse_model_file(load_traverse(small_traverse), tmp_path / "m", AnalysisOptions(n_jobs=2))
 
 
 def test_map_runs_without_pandas(small_traverse: Path, tmp_path: Path) -> None:
@@ -389,3 +396,22 @@ def test_one_blas_thread_limits_blas_inside_the_block_only() -> None:
         with one_blas_thread():
             assert set(blas()) == {1}
         assert blas() == before
+
+
+def test_analyse_takes_one_input_form(small_traverse: Path, model) -> None:
+    """A Traverse, a TerrainModel (or None) and one AnalysisOptions, whole or as keyword
+    changes; paths, names and unknown options are refused in one line."""
+    trav = load_traverse(small_traverse)
+    with pytest.raises(InputError, match=r"analyse takes a Traverse .* got PosixPath"):
+        analyse(small_traverse, model)  # type: ignore[arg-type]
+    with pytest.raises(InputError, match=r"analyse takes a TerrainModel or None .* got str"):
+        analyse(trav, "default")  # type: ignore[arg-type]
+    with pytest.raises(InputError, match=r"analyse\(\) got unexpected keyword arguments \['far'\]"):
+        analyse(trav, model, far=True)
+    with pytest.raises(InputError, match=r"near_far must be 'auto', True or False; got 'yes'"):
+        AnalysisOptions(near_far="yes")
+    whole = analyse(trav, None, AnalysisOptions(near_far=False, resolution=0.2))
+    changed = analyse(trav, None, AnalysisOptions(resolution=0.2), near_far=False)
+    assert np.array_equal(whole.map["R"], changed.map["R"], equal_nan=True)
+    whole.mapper.close()
+    changed.mapper.close()

@@ -21,6 +21,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.ndimage import gaussian_filter1d
 
+from rough_map.classify import load_terrain_model
 from rough_map.errors import InputError, NotFittedError, SchemaError
 from rough_map.features import read_features, write_features
 from rough_map.features.table import SMOOTH_COLUMNS
@@ -30,6 +31,7 @@ from rough_map.filter import (
     load_roughness_smoother,
     smooth_table,
 )
+from rough_map.io.traverse import load_traverse
 from rough_map.resources import config_file
 
 SHIPPED = load_roughness_smoother()
@@ -518,7 +520,7 @@ def test_the_tables_of_a_map_hold_the_smoothed_roughness(mixed_course, tmp_path:
 
     from rough_map.workflow import analyse, write_tables
 
-    result = analyse(mixed_course[0], "default", near_far=False)
+    result = analyse(load_traverse(mixed_course[0]), load_terrain_model("default"), near_far=False)
     paths = write_tables(result, tmp_path)
     result.mapper.close()
     features = read_features(paths["features"])
@@ -542,7 +544,9 @@ def test_the_map_fuses_raw_or_smoothed_roughness(mixed_course, roughness: str) -
     from rough_map.workflow import analyse
 
     folder, _ = mixed_course
-    result = analyse(folder, "default", near_far=False, roughness=roughness)
+    result = analyse(
+        load_traverse(folder), load_terrain_model("default"), near_far=False, roughness=roughness
+    )
     grid, f = result.map, result.features
     lnR = np.log(grid["R"])
     ahead = 1.0  # m, the patch centres

@@ -6,6 +6,7 @@ import math
 import numpy as np
 import pytest
 
+from rough_map.classify import load_terrain_model
 from rough_map.cli.main import main
 from rough_map.features import read_features, traverse_features, write_features
 from rough_map.io.traverse import load_traverse
@@ -80,7 +81,7 @@ def test_default_model_maps_the_mixed_course(mixed, mixed_features):
     from rough_map.workflow import analyse
 
     trav = load_traverse(mixed)
-    result = analyse(trav, default_model(), features=mixed_features, near_far=False)
+    result = analyse(trav, load_terrain_model(default_model()), near_far=False)
     world = load_world(mixed / trav.spec.height_field)
     assert map_accuracy(result.map, world) >= 0.9
     f, pred = mixed_features, result.prediction

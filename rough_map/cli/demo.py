@@ -171,7 +171,7 @@ def _whole_story(args: argparse.Namespace, t0: float, synthetic: list[list[str]]
     from rough_map.evaluation import evaluate_model
     from rough_map.export import export_map
     from rough_map.export.report import ReportTable, write_report
-    from rough_map.workflow import analyse, level_edges, write_tables
+    from rough_map.workflow import AnalysisOptions, analyse_model_file, level_edges, write_tables
 
     out: Path = args.out
     if not _fresh_folder(out):
@@ -187,7 +187,7 @@ def _whole_story(args: argparse.Namespace, t0: float, synthetic: list[list[str]]
     _say(table(stereo_rows, STEREO_HEAD) + f"\n{stereo_note}")
 
     _say("\n== 4. Features, terrain model and Bayesian path filter; 5. map, near-to-far ==")
-    result = analyse(trav, chosen_model(args), near_far="auto", progress=args.progress)
+    result = analyse_model_file(trav, chosen_model(args), AnalysisOptions(progress=args.progress))
     class_rows = _class_rows(result)
     _say(table(class_rows, CLASS_HEAD))
     evaluation = evaluate_model(result.model, [result.features])

@@ -107,24 +107,30 @@ def _run(args: argparse.Namespace) -> int:
                 progress=args.progress,
             )
             with unused_optional_imports("pandas"):
-                from rough_map.workflow import analyse, summary, write_outputs
+                from rough_map.workflow import AnalysisOptions, analyse, summary, write_outputs
             if frames is not None and not args.no_png:
                 import matplotlib.backends.backend_agg  # noqa: F401  # for the PNGs
     except BaseException:
         if frames is not None:
             frames.close()
         raise
-    result = analyse(
-        traverse,
-        model,
+    options = AnalysisOptions(
         resolution=args.resolution,
         near_far=near_far,
         near_far_settings=near_far_settings(args),
         roughness=args.roughness,
         n_jobs=args.jobs,
         progress=args.progress,
-        frames=frames,
     )
+    try:  # scikit-learn is imported now, while the workers start on the frames
+        from rough_map.classify import load_terrain_model
+
+        terrain_model = load_terrain_model(model)
+    except BaseException:
+        if frames is not None:
+            frames.close()
+        raise
+    result = analyse(traverse, terrain_model, options, frames=frames)
     written = write_outputs(
         result,
         out,

@@ -51,22 +51,27 @@ def run(args: argparse.Namespace) -> int:
     from rough_map.evaluation import evaluate_model
     from rough_map.export import export_map
     from rough_map.export.report import write_report
-    from rough_map.workflow import MAP_OUTPUTS, analyse, level_edges, write_tables
+    from rough_map.workflow import (
+        MAP_OUTPUTS,
+        AnalysisOptions,
+        analyse_model_file,
+        level_edges,
+        write_tables,
+    )
 
     owned = (*MAP_OUTPUTS, "index.html", "fig_*.png", "evaluation.json")
 
     near_far = NEAR_FAR[args.near_far]
     model_path = chosen_model(args)
     (traverse,) = open_traverses(args, args.traverse)
-    result = analyse(
-        traverse,
-        model_path,
+    options = AnalysisOptions(
         resolution=args.resolution,
         near_far=near_far,
         near_far_settings=near_far_settings(args),
         n_jobs=args.jobs,
         progress=args.progress,
     )
+    result = analyse_model_file(traverse, model_path, options)
     evaluation = None
     if any(result.features["label"]):
         evaluation = evaluate_model(result.model, [result.features])

@@ -533,6 +533,8 @@ class FrameStream:
         desc: str = "frames",
     ) -> None:
         self.settings = settings
+        #: the model file whose card the pass started from (:func:`start_frame_pass`)
+        self.card = ""
         self.jobs = [job for c in chunks for job in c]  # the frames, in order
         self._chunks = chunks
         self._progress = (sum(len(c) for c in chunks), progress, desc)

@@ -132,7 +132,7 @@ def start_frame_pass(
     traverse : Traverse
         The traverse.
     model : str, Path or other
-        The model's name or file, as ``analyse`` takes it.
+        The model's name or file, as :func:`rough_map.workflow.analyse_model_file` takes it.
     resolution : float
         The map's cell size in m (the lattice of the frames' height samples).
     n_jobs : int
@@ -147,7 +147,7 @@ def start_frame_pass(
         return None
     reading = Extraction.from_dict(card).any_density()
     settings = traverse_pass(traverse, reading, height_resolution=resolution, features=True)
-    return iter_frames(
+    stream = iter_frames(
         frame_jobs(traverse),
         settings,
         n_jobs=n_jobs,
@@ -155,6 +155,8 @@ def start_frame_pass(
         desc=traverse.name,
         prime=PRIME_CHUNKS,
     )
+    stream.card = str(model)
+    return stream
 
 
 def traverse_pass(
