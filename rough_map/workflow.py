@@ -238,20 +238,20 @@ def analyse(
         ``frames`` started with another feature extraction than the model's (its card's,
         which is not covered by the model file's sha256, edited or of another model).
     """
-    opt = AnalysisOptions.of(options, changes)
-    if not isinstance(traverse, Traverse):
-        raise InputError(
-            f"analyse takes a Traverse (rough_map.io.traverse.load_traverse reads one), "
-            f"got {type(traverse).__name__}"
-        )
-    if model is not None and not isinstance(model, TerrainModel):
-        raise InputError(
-            f"analyse takes a TerrainModel or None (rough_map.classify.load_terrain_model "
-            f"reads one), got {type(model).__name__}"
-        )
-    resolution, progress = opt.resolution, opt.progress
-    check_map_memory(traverse.poses()[:, :2], resolution)
-    try:
+    try:  # a frame pass given is closed on any error
+        opt = AnalysisOptions.of(options, changes)
+        if not isinstance(traverse, Traverse):
+            raise InputError(
+                f"analyse takes a Traverse (rough_map.io.traverse.load_traverse reads one), "
+                f"got {type(traverse).__name__}"
+            )
+        if model is not None and not isinstance(model, TerrainModel):
+            raise InputError(
+                f"analyse takes a TerrainModel or None (rough_map.classify.load_terrain_model "
+                f"reads one), got {type(model).__name__}"
+            )
+        resolution, progress = opt.resolution, opt.progress
+        check_map_memory(traverse.poses()[:, :2], resolution)
         extraction = Extraction.from_dict(model.extraction_ if model is not None else None)
         reading = extraction if model is None else model.reading()
         if frames is not None and frames.settings.requested != reading:
