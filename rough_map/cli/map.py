@@ -114,17 +114,17 @@ def _run(args: argparse.Namespace) -> int:
         if frames is not None:
             frames.close()
         raise
-    options = AnalysisOptions(
-        resolution=args.resolution,
-        near_far=near_far,
-        near_far_settings=near_far_settings(args),
-        roughness=args.roughness,
-        n_jobs=args.jobs,
-        progress=args.progress,
-    )
     try:  # scikit-learn is imported now, while the workers start on the frames
         from rough_map.classify import load_terrain_model
 
+        options = AnalysisOptions(
+            resolution=args.resolution,
+            near_far=near_far,
+            near_far_settings=near_far_settings(args),
+            roughness=args.roughness,
+            n_jobs=args.jobs,
+            progress=args.progress,
+        )
         terrain_model = load_terrain_model(model)
     except BaseException:
         if frames is not None:
