@@ -382,6 +382,19 @@ def near_far_settings(args: argparse.Namespace) -> Any:
     return settings.model_copy(update=update)
 
 
+def analysis_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The fields of :class:`rough_map.workflow.AnalysisOptions` that a mapping command's
+    options give (:func:`add_map_args`, ``-j``, ``--roughness`` where it has one)."""
+    return {
+        "resolution": args.resolution,
+        "near_far": NEAR_FAR[args.near_far],
+        "near_far_settings": near_far_settings(args),
+        "roughness": getattr(args, "roughness", "raw"),
+        "n_jobs": args.jobs,
+        "progress": args.progress,
+    }
+
+
 def add_jobs_arg(parser: argparse.ArgumentParser) -> None:
     """``-j/--jobs N``: worker processes for the frames (joblib)."""
     parser.add_argument(

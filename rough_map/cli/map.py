@@ -18,15 +18,14 @@ import argparse
 from pathlib import Path
 
 from rough_map.cli._common import (
-    NEAR_FAR,
     add_command,
     add_jobs_arg,
     add_map_args,
     add_model_arg,
     add_traverses_arg,
+    analysis_options,
     chosen_model,
     emit_json,
-    near_far_settings,
     open_traverses,
     start_up,
     status,
@@ -88,7 +87,6 @@ def _run(args: argparse.Namespace) -> int:
     from rough_map.map.grid_geometry import check_map_memory
 
     out: Path = args.out
-    near_far = NEAR_FAR[args.near_far]
     model = chosen_model(args)
     frames = None
     try:
@@ -117,14 +115,7 @@ def _run(args: argparse.Namespace) -> int:
     try:  # scikit-learn is imported now, while the workers start on the frames
         from rough_map.classify import load_terrain_model
 
-        options = AnalysisOptions(
-            resolution=args.resolution,
-            near_far=near_far,
-            near_far_settings=near_far_settings(args),
-            roughness=args.roughness,
-            n_jobs=args.jobs,
-            progress=args.progress,
-        )
+        options = AnalysisOptions(**analysis_options(args))
         terrain_model = load_terrain_model(model)
     except BaseException:
         if frames is not None:

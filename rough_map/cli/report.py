@@ -16,14 +16,13 @@ import argparse
 from pathlib import Path
 
 from rough_map.cli._common import (
-    NEAR_FAR,
     add_command,
     add_jobs_arg,
     add_map_args,
     add_model_arg,
     add_traverses_arg,
+    analysis_options,
     chosen_model,
-    near_far_settings,
     open_traverses,
     status,
 )
@@ -61,16 +60,9 @@ def run(args: argparse.Namespace) -> int:
 
     owned = (*MAP_OUTPUTS, "index.html", "fig_*.png", "evaluation.json")
 
-    near_far = NEAR_FAR[args.near_far]
     model_path = chosen_model(args)
     (traverse,) = open_traverses(args, args.traverse)
-    options = AnalysisOptions(
-        resolution=args.resolution,
-        near_far=near_far,
-        near_far_settings=near_far_settings(args),
-        n_jobs=args.jobs,
-        progress=args.progress,
-    )
+    options = AnalysisOptions(**analysis_options(args))
     result = analyse_model_file(traverse, model_path, options)
     evaluation = None
     if any(result.features["label"]):
