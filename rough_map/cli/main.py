@@ -91,6 +91,8 @@ def _main(argv: list[str]) -> int:
     try:
         parser = build_parser()
     except Exception as exc:  # a broken install: still one line, no traceback
+        if _interrupted(exc):
+            raise KeyboardInterrupt from exc
         print(failure_line("", exc), file=sys.stderr)
         return 2
     try:
@@ -145,8 +147,25 @@ def _run(args: argparse.Namespace) -> int:
         os.dup2(devnull, sys.stdout.fileno())
         return 141
     except Exception as exc:  # the last line of defence: one line
+        if _interrupted(exc):
+            print("rough-map: interrupted", file=sys.stderr)
+            return 130
         print(failure_line(args.command, exc), file=sys.stderr, flush=True)
         return 2
+
+
+def _interrupted(exc: BaseException) -> bool:
+    """Whether ``exc`` stands for a Ctrl-C: a pybind11 extension (open3d, cv2, scipy's
+    pocketfft...) that a Ctrl-C interrupts while it is imported raises
+    ``ImportError('initialization failed')`` from the ``KeyboardInterrupt``."""
+    seen: set[int] = set()
+    cause: BaseException | None = exc
+    while cause is not None and id(cause) not in seen:
+        if isinstance(cause, KeyboardInterrupt):
+            return True
+        seen.add(id(cause))
+        cause = cause.__cause__ or cause.__context__
+    return False
 
 
 def failure_line(command: str, exc: BaseException) -> str:
