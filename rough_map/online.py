@@ -49,7 +49,6 @@ from rough_map.features.frames import process_points
 from rough_map.features.traverse import FeatureCollector
 from rough_map.filter import discrete_bayes
 from rough_map.geometry import pose_matrix
-from rough_map.map.footprints import patch_corners
 from rough_map.map.grid import GridMap
 from rough_map.map.layers import OBSERVED
 from rough_map.map.tiles import TiledMap
@@ -272,30 +271,30 @@ class OnlineMapper:
         self._collect.add(out)
         x, y, yaw = float(pose[0]), float(pose[1]), float(pose[5])
         self._track.append((x, y))
-        if math.isfinite(x) and math.isfinite(y) and math.isfinite(yaw):
-            self.tiles.cover(x, y, yaw)
         row = out.row
         raw = posterior = None
         novelty = math.nan
         if classes and self.model is not None:
             raw, posterior, novelty = self._classify(out, x, y)
         level = self._level(row) if classes else math.nan
-        touched = 0
+        observation = None
         if row["valid"]:
-            probs = posterior if classes else None
-            observation = _observation(row, probs, level, novelty)
+            observation = _observation(row, posterior if classes else None, level, novelty)
             if not roughness:
                 observation["R"] = math.nan  # fused later (fuse_classes)
-            touched = self.tiles.fuse_patch(x, y, yaw, keep_box=not classes, **observation)
-        if out.heights is not None:
-            h = out.heights
-            self.tiles.add_heights(h.rows, h.cols, h.sums, h.counts)
-        self.tiles.evict(x, y, self.window)
+        h = out.heights
+        touched, area = self.tiles.add_frame(
+            x,
+            y,
+            yaw,
+            observation,
+            None if h is None else (h.rows, h.cols, h.sums, h.counts),
+            keep_box=not classes,
+            window=self.window,
+            margin=0.0 if classes else None,
+        )
         label = "" if posterior is None else self.classes[int(np.argmax(posterior))]
-        area = None
-        if touched and classes:
-            corners = patch_corners(x, y, yaw, self.extraction.patch)
-            area = self.tiles.window((*corners.min(axis=0), *corners.max(axis=0)))
+        area = area if touched else None
         name = self.level_names[int(level)] if math.isfinite(level) else ""
         return FrameUpdate(index, row, raw, posterior, label, name, area)
 
@@ -408,8 +407,7 @@ class OnlineMapper:
             if probs is None and not math.isfinite(level) and not rough:
                 continue
             fused: dict[str, Any] = {"probs": probs, "level": level, "count": False, **rough}
-            self.tiles.fuse_patch(x, y, yaw, **fused)
-            self.tiles.evict(x, y, self.window)
+            self.tiles.add_frame(x, y, yaw, fused, window=self.window)
 
     def replay(self, *, margin: float = 0.2) -> Iterator[tuple[float, GridMap]]:
         """The map as it grew: after each valid frame, in order, the map around its patch
@@ -443,12 +441,9 @@ class OnlineMapper:
                     math.nan,  # or the frame's, in extra
                 )
                 obs.update({k: float(v[i]) for k, v in extra.items()})
-                replayed.cover(x, y, yaw)
-                replayed.fuse_patch(x, y, yaw, **obs)
-                corners = patch_corners(x, y, yaw, self.extraction.patch)
-                lo, hi = corners.min(axis=0) - margin, corners.max(axis=0) + margin
-                yield float(row.get("t", math.nan)), replayed.window((*lo, *hi))
-                replayed.evict(x, y, self.window)
+                _, area = replayed.add_frame(x, y, yaw, obs, window=self.window, margin=margin)
+                if area is not None:
+                    yield float(row.get("t", math.nan)), area
         finally:
             replayed.close()
 

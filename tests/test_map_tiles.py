@@ -1,4 +1,4 @@
-"""The tiled map's fusion and its tiles on disk (rough_map.map.tiles, .tile_files,
+"""The tiled map's fusion and its tiles on disk (rough_map.map.tiles,
 .footprints): the same bits as fusing in one grid, files written only when a tile changed."""
 
 from __future__ import annotations
@@ -19,8 +19,7 @@ from rough_map.map import (
     update_estimates,
 )
 from rough_map.map.footprints import lattice_patch_cells, patch_bounds, patch_corners
-from rough_map.map.tile_files import by_tile, read_tile, used_window, write_tile
-from rough_map.map.tiles import TiledMap
+from rough_map.map.tiles import TiledMap, by_tile, read_tile, used_window, write_tile
 from rough_map.patch import PatchSpec
 
 NAMES = ("concrete", "dirt_road", "gravel")

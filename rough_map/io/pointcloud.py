@@ -101,19 +101,16 @@ def read_cloud(path: PathLike, *, columns: Sequence[str] | None = None) -> np.nd
     """
     path = Path(path)
     reader = READERS.get(path.suffix.lower())
-    if columns is not None:
-        picked = _check_columns(columns)
-        if reader is not _read_text:
-            raise InputError(f"{path.name}: columns pick the fields of text clouds only")
-        check_readable(path)
-        return _finite_xyz(path, _read_text(path, picked))
+    picked = None if columns is None else _check_columns(columns)
+    if picked is not None and reader is not _read_text:
+        raise InputError(f"{path.name}: columns pick the fields of text clouds only")
     if reader is None:
         known = ", ".join(sorted(READERS))
         raise FileFormatError(
             path, f"unknown point-cloud suffix {path.suffix!r}; known: {known}", field="suffix"
         )
     check_readable(path)
-    return _finite_xyz(path, reader(path))
+    return _finite_xyz(path, reader(path) if picked is None else _read_text(path, picked))
 
 
 def write_cloud(path: PathLike, points: np.ndarray) -> Path:
