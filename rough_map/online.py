@@ -165,6 +165,7 @@ class OnlineMapper:
         self.classes = tuple(str(c) for c in self.model.classes_) if self.model is not None else ()
         self.window = float(window)
         self.name = name
+        self._collect = FeatureCollector(name, extraction)
         self.tiles = TiledMap(
             resolution,
             self.classes,
@@ -174,7 +175,6 @@ class OnlineMapper:
             level_names=self.level_names,
             spill_dir=spill_dir,
         )
-        self._collect = FeatureCollector(name, extraction)
         self._track: list[tuple[float, float]] = []
         self._log_belief: NDArray[np.float64] | None = None
         self._last_xy: tuple[float, float] | None = None

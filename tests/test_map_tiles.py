@@ -1,5 +1,6 @@
-"""The tiled map's fusion and its tiles on disk (rough_map.map.tiles,
-.footprints): the same bits as fusing in one grid, files written only when a tile changed."""
+"""The tiled map's fusion and its tiles on disk (rough_map.map.tiles, and the patch
+footprints of rough_map.map.grid_geometry): the same bits as fusing in one grid, files
+written only when a tile changed."""
 
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ from rough_map.map import (
     patch_cells,
     update_estimates,
 )
-from rough_map.map.footprints import lattice_patch_cells, patch_bounds, patch_corners
+from rough_map.map.grid_geometry import lattice_patch_cells, patch_bounds, patch_corners
 from rough_map.map.tiles import TiledMap, by_tile, read_tile, used_window, write_tile
 from rough_map.patch import PatchSpec
 
@@ -99,14 +100,14 @@ def test_tiled_fusion_is_the_one_grid_fusion_bit_for_bit(tmp_path: Path) -> None
     first = {"sigma_R": 1e-5, "sigma_w": 0.1}
     for i in range(len(x)):
         obs = {"t": 0.5 * i, "R": R[i], "w": w[i], **first}
-        tiles.fuse_patch(x[i], y[i], yaw[i], **obs)
+        tiles.add_frame(x[i], y[i], yaw[i], obs)
         fuse_patch(ref, x[i], y[i], yaw[i], spec=spec, grow=False, update=False, **obs)
         tiles.evict(x[i], y[i], 0.5)
     assert tiles.in_memory() < len(tiles.keys())
     for i in range(len(x)):
         p = probs[i] if np.all(np.isfinite(probs[i])) else None
         obs = {"probs": p, "level": levels[i], "count": False}
-        tiles.fuse_patch(x[i], y[i], yaw[i], **obs)
+        tiles.add_frame(x[i], y[i], yaw[i], obs)
         fuse_patch(ref, x[i], y[i], yaw[i], spec=spec, grow=False, update=False, **obs)
         tiles.evict(x[i], y[i], 0.5)
     got = tiles.window(ref.geometry.bounds)
@@ -123,14 +124,14 @@ def test_a_tile_read_and_left_alone_is_not_written_again(tmp_path: Path) -> None
     spec = PatchSpec(ahead=1.0, size=1.3)
     folder = tmp_path / "t"
     tiles = TiledMap(0.1, NAMES, spec=spec, tile_cells=64, spill_dir=folder)
-    tiles.fuse_patch(3.0, 3.0, 0.0, t=1.0, R=1e-4, w=2.0)
+    tiles.add_frame(3.0, 3.0, 0.0, {"t": 1.0, "R": 1e-4, "w": 2.0})
     assert tiles.evict(100.0, 100.0, 1.0) == 1
     (path,) = folder.iterdir()
     before = path.stat().st_mtime_ns, path.read_bytes()
     merged = tiles.merged()  # reads the tile back, changes nothing
     assert np.nanmax(merged["count"]) == 1.0
     assert (path.stat().st_mtime_ns, path.read_bytes()) == before
-    tiles.fuse_patch(3.0, 3.0, 0.0, probs=[0.2, 0.3, 0.5], count=False)
+    tiles.add_frame(3.0, 3.0, 0.0, {"probs": [0.2, 0.3, 0.5], "count": False})
     tiles.evict(100.0, 100.0, 1.0)
     assert path.read_bytes() != before[1]  # changed: written again
     again = tiles.merged()
@@ -180,12 +181,12 @@ def test_cells_by_tile_keep_their_order() -> None:
 def test_bad_observations_leave_the_tiles_alone(tmp_path: Path) -> None:
     tiles = TiledMap(0.1, NAMES, tile_cells=16, spill_dir=tmp_path / "t")
     with pytest.raises(InputError, match="pose must be finite"):
-        tiles.fuse_patch(math.nan, 0.0, 0.0, R=1e-4, w=2.0)
+        tiles.add_frame(math.nan, 0.0, 0.0, {"R": 1e-4, "w": 2.0})
     with pytest.raises(InputError, match="probs must have shape"):
-        tiles.fuse_patch(0.0, 0.0, 0.0, R=1e-4, w=2.0, probs=[0.5, 0.5])
+        tiles.add_frame(0.0, 0.0, 0.0, {"R": 1e-4, "w": 2.0, "probs": [0.5, 0.5]})
     with pytest.raises(InputError, match="level must be an index"):
-        tiles.fuse_patch(0.0, 0.0, 0.0, level=1.5)
+        tiles.add_frame(0.0, 0.0, 0.0, {"level": 1.5})
     assert tiles.keys() == []
     no_classes = TiledMap(0.1, tile_cells=16, spill_dir=tmp_path / "u")
     with pytest.raises(InputError, match="no class_names"):
-        no_classes.fuse_patch(0.0, 0.0, 0.0, probs=[1.0])
+        no_classes.add_frame(0.0, 0.0, 0.0, {"probs": [1.0]})

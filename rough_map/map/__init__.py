@@ -1,8 +1,8 @@
 """Grid maps of roughness and terrain class: geometry, named layers, fusion.
 
-:mod:`rough_map.map.grid_geometry` says where a map lies (:class:`GridGeometry`);
-:mod:`rough_map.map.grid` holds the layer container and the conversion to grid_map's
-conventions; :mod:`rough_map.map.footprints` finds the cells of a vehicle's patch;
+:mod:`rough_map.map.grid_geometry` says where a map lies (:class:`GridGeometry`) and
+which of its cells a vehicle's patch covers; :mod:`rough_map.map.grid` holds the layer
+container and the conversion to grid_map's conventions;
 :mod:`rough_map.map.layers` defines the fused layers and computes their estimates;
 :mod:`rough_map.map.fusion` fuses the patches of a traverse and far-field predictions into
 them; :mod:`rough_map.map.tiles` holds a map of any extent in lattice tiles kept on disk
@@ -12,10 +12,9 @@ when far from the vehicle (:class:`~rough_map.map.tiles.TiledMap`), and
 """
 
 from rough_map.errors import EmptyMapWarning
-from rough_map.map.footprints import patch_cells, patch_corners
 from rough_map.map.fusion import fuse_cell_probabilities, fuse_patch, fuse_traverse
 from rough_map.map.grid import GridMap, GridMapData, LayerInfo, from_grid_map, to_grid_map
-from rough_map.map.grid_geometry import GridGeometry
+from rough_map.map.grid_geometry import GridGeometry, patch_cells, patch_corners
 from rough_map.map.layers import (
     GROUPS,
     LEVEL_NAMES,

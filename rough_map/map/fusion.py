@@ -22,9 +22,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from rough_map.config import Crs
 from rough_map.errors import EmptyMapWarning, InputError
-from rough_map.map.footprints import patch_cells, patch_corners
 from rough_map.map.grid import DEFAULT_MARGIN, GridMap
-from rough_map.map.grid_geometry import GridGeometry
+from rough_map.map.grid_geometry import GridGeometry, patch_cells, patch_corners
 from rough_map.map.layers import (
     LEVEL_NAMES,
     OBSERVED,

@@ -41,10 +41,9 @@ from numpy.typing import NDArray
 from rough_map._files import PathLike, clean_dead_temp_dirs, write_error
 from rough_map.config import Crs
 from rough_map.errors import FileFormatError, InputError
-from rough_map.map.footprints import lattice_patch_box, patch_bounds, patch_corners
 from rough_map.map.fusion import add_vote_layers
 from rough_map.map.grid import GridMap
-from rough_map.map.grid_geometry import GridGeometry
+from rough_map.map.grid_geometry import GridGeometry, lattice_patch_box, patch_bounds
 from rough_map.map.layers import LEVEL_NAMES, init_layers, patch_sums, update_estimates
 from rough_map.map.state import (
     HEIGHT_LAYERS,
@@ -259,10 +258,6 @@ class TiledMap:
 
     # -- fusion ------------------------------------------------------------------------
 
-    def cover(self, x: float, y: float, yaw: float) -> None:
-        """Make :meth:`merged` cover the patch seen from this pose (m, rad), fused or not."""
-        self._grow(patch_bounds(x, y, yaw, self.spec))
-
     def add_frame(
         self,
         x: float,
@@ -276,54 +271,52 @@ class TiledMap:
         window: float = math.inf,
         margin: float | None = None,
     ) -> tuple[int, GridMap | None]:
-        """Add one frame seen from pose ``(x, y)`` (m), ``yaw`` (rad): the map covers its
-        patch (:meth:`cover`), the patch's ``observation`` is fused (:meth:`fuse_patch`;
-        None: none, an invalid patch) and its height sample ``(rows, cols, sums, counts)``
-        added (:meth:`add_heights`); then the tiles farther than ``window`` m go to disk
-        (:meth:`evict`). Returns how many cells the patch covered, and, given ``margin``
-        (m), the map over the patch's box plus ``margin`` as it now stands (None without an
-        observation)."""
+        """Add one frame seen from pose ``(x, y)`` (m), ``yaw`` (rad).
+
+        The map covers the frame's patch, fused or not (:meth:`merged` includes it). The
+        patch's ``observation`` (as :func:`rough_map.map.fusion.fuse_patch`: ``t``,
+        ``probs``, ``level``, ``count`` and the observed fields; None: none, an invalid
+        patch) is fused into the tiles it covers, each cell getting the patch's sums
+        (:func:`~rough_map.map.layers.patch_sums`). Its height sample ``(rows, cols, sums,
+        counts)`` is added (:meth:`add_heights`). Then the tiles farther than ``window`` m
+        go to disk (:meth:`evict`). ``keep_box``: keep this pose's cells for the next fusion
+        at it, which takes them (a traverse's classes come in a second pass).
+
+        Returns how many cells the patch covered, and, given ``margin`` (m), the map over
+        the patch's box plus ``margin`` as it now stands (None without an observation).
+
+        Raises
+        ------
+        InputError
+            An observation at a pose that is not finite.
+        """
         pose_ok = all(math.isfinite(v) for v in (x, y, yaw))
+        if observation is not None and not pose_ok:
+            raise InputError(f"pose must be finite (x, y in m, yaw in rad), got {(x, y, yaw)}")
+        box = self._boxes.pop((x, y, yaw), None) if observation is not None else None
+        if observation is not None and box is None:
+            box = lattice_patch_box(x, y, yaw, self.spec, self.resolution)
+        bounds = box[0] if box is not None else patch_bounds(x, y, yaw, self.spec)
         if pose_ok:
-            self.cover(x, y, yaw)
-        touched = (
-            0
-            if observation is None
-            else self.fuse_patch(x, y, yaw, keep_box=keep_box, **observation)
-        )
+            self._grow(bounds)
+        touched, area = 0, None
+        if observation is not None and box is not None:
+            if keep_box:
+                self._boxes[(x, y, yaw)] = box
+            _, r0, c0, inside = box
+            sums = patch_sums(self.class_names, self.level_names, **observation)
+            t = observation.get("t", math.nan)
+            if inside.size and (sums or math.isfinite(t)):
+                self._add_cells(r0, c0, inside, sums, t)
+            touched = int(np.count_nonzero(inside))
         if heights is not None:
             self.add_heights(*heights)
-        area = None
         if observation is not None and margin is not None:
-            corners = patch_corners(x, y, yaw, self.spec)
-            lo, hi = corners.min(axis=0) - margin, corners.max(axis=0) + margin
-            area = self.window((*lo, *hi))
+            xmin, ymin, xmax, ymax = bounds
+            area = self.window((xmin - margin, ymin - margin, xmax + margin, ymax + margin))
         if pose_ok:
             self.evict(x, y, window)
         return touched, area
-
-    def fuse_patch(
-        self, x: float, y: float, yaw: float, *, keep_box: bool = False, **observation: Any
-    ) -> int:
-        """Fuse one frame's patch (as :func:`rough_map.map.fusion.fuse_patch`: ``t``,
-        ``probs``, ``level``, ``count`` and the observed fields) into the tiles it
-        covers, each cell getting the patch's sums (:func:`~rough_map.map.layers.patch_sums`);
-        returns how many cells it covered. ``keep_box``: keep this pose's cells for the next
-        fusion at it, which takes them (a traverse's classes come in a second pass)."""
-        if not all(math.isfinite(v) for v in (x, y, yaw)):
-            raise InputError(f"pose must be finite (x, y in m, yaw in rad), got {(x, y, yaw)}")
-        box = self._boxes.pop((x, y, yaw), None)
-        if box is None:
-            box = lattice_patch_box(x, y, yaw, self.spec, self.resolution)
-        if keep_box:
-            self._boxes[(x, y, yaw)] = box
-        bounds, r0, c0, inside = box
-        self._grow(bounds)
-        sums = patch_sums(self.class_names, self.level_names, **observation)
-        t = observation.get("t", math.nan)
-        if inside.size and (sums or math.isfinite(t)):
-            self._add_cells(r0, c0, inside, sums, t)
-        return int(np.count_nonzero(inside))
 
     def _add_cells(
         self,
