@@ -96,6 +96,54 @@ def test_lazrs_aborts_on_an_absurd_chunk_count(tmp_path: Path) -> None:
         read_cloud(path)
 
 
+def test_lazrs_aborts_on_a_forged_layer_size(tmp_path: Path) -> None:
+    """A layered (LAS 1.4) LAZ file of under 1 kB whose first chunk declares a layer of 4 GiB:
+    lazrs (0.8) allocates the layer before reading it, so it takes 4 GiB and 13 s, or aborts
+    the process (SIGABRT) when the memory is not there, as under a 1 GiB cap here. rough_map
+    walks the chunks' layer sizes first (``_check_laz_layers`` in
+    :func:`rough_map.io.las.check_las_header`)."""
+    from rough_map.io.las import write_las
+
+    path = tmp_path / "layer.laz"
+    write_las(path, np.random.default_rng(1).normal(size=(46, 3)))
+    data = bytearray(path.read_bytes())
+    offset = struct.unpack_from("<I", data, 96)[0]  # offset to the point data
+    # after the chunk table's offset, the first point (raw), the chunk's point count: the
+    # byte sizes of its layers; the sixth is forged
+    struct.pack_into("<I", data, offset + 8 + 30 + 4 + 20, 2**32 - 16)
+    path.write_bytes(bytes(data))
+    assert path.stat().st_size < 1024
+    code = (
+        "import resource, sys; resource.setrlimit(resource.RLIMIT_AS, (2**30, 2**30)); "
+        "import laspy; laspy.read(sys.argv[1])"
+    )
+    _assert_crashes(_library_alone(code, str(path)), "laspy.read with lazrs under 1 GiB")
+    with pytest.raises(FileFormatError, match=r"layer\.laz \[points\]: LAZ chunk 0 declares"):
+        read_cloud(path)
+
+
+def test_laspy_hangs_on_an_absurd_vlr_count(tmp_path: Path) -> None:
+    """A LAS header declaring 2^32 - 1 VLRs: laspy (2.7) reads VLR after VLR past the end of
+    the file and does not return (still running after 120 s; stopped here after 10).
+    rough_map checks the VLRs against the bytes before the points first (``_check_vlrs`` in
+    :func:`rough_map.io.las.check_las_header`)."""
+    from rough_map.io.las import write_las
+
+    path = tmp_path / "vlrs.las"
+    write_las(path, np.random.default_rng(1).normal(size=(46, 3)))
+    data = bytearray(path.read_bytes())
+    struct.pack_into("<I", data, 100, 2**32 - 1)  # number of VLRs
+    path.write_bytes(bytes(data))
+    with pytest.raises(subprocess.TimeoutExpired):
+        subprocess.run(
+            [sys.executable, "-c", "import laspy, sys; laspy.read(sys.argv[1])", str(path)],
+            capture_output=True,
+            timeout=10,
+        )
+    with pytest.raises(FileFormatError, match=r"vlrs\.las \[vlrs\]: 4294967295 VLRs cannot"):
+        read_cloud(path)
+
+
 def test_sklearn_tree_segfaults_on_a_child_index_out_of_range(tmp_path: Path) -> None:
     """A forest whose tree points a node at a child beyond its nodes, rebuilt by skops as any
     model file is: scikit-learn's compiled tree walk reads the node without a bounds check and

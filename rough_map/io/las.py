@@ -193,10 +193,15 @@ def check_las_header(path: Path) -> None:
     """Check the public header block of a LAS/LAZ file against the file size before laspy
     (and the LAZ decoder, which aborts the process on absurd counts) sees it.
 
-    The crash it prevents: lazrs (0.8) allocates a chunk table of the declared number of
-    chunks before reading it and aborts the process (SIGABRT) when that fails (2^31 - 1
-    chunks; ``tests/test_library_crashes.py``). The other checks give laspy's errors one
-    line naming the field.
+    The crashes it prevents (``tests/test_library_crashes.py``, laspy 2.7 with lazrs 0.8):
+    lazrs allocates a chunk table of the declared number of chunks before reading it, and
+    each layer of a layered (LAS 1.4) chunk at its declared size, and aborts the process
+    (SIGABRT) when that fails (2^31 - 1 chunks; a 4 GiB layer in a file of 912 B, which
+    otherwise takes 4 GiB and 13 s); laspy reads a declared 2^32 - 1 VLRs past the end of
+    the file and does not return. Measured too, without being crashes: the EVLR and point
+    counts make laspy raise MemoryError or OverflowError, and a LASzip VLR without items
+    makes lazrs panic; these checks give them one line naming the field, as the others do
+    laspy's errors.
 
     Checked: the signature, header size, offset to the point data, the VLRs (count and
     lengths), the point format and record length, the point count (LAS: the records fit in
