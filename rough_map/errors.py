@@ -18,6 +18,10 @@ class InputError(RoughMapError, ValueError):
     """An argument or an array has the wrong value, shape, units or content."""
 
 
+class UnknownOptionError(InputError, TypeError):
+    """An unknown keyword option (a TypeError too, as Python raises for a bad keyword)."""
+
+
 class PatchError(InputError):
     """A patch cannot be analysed (too few points, too many gaps, ...)."""
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 import math
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -52,7 +52,7 @@ from rough_map.map.fusion import log_fused
 from rough_map.map.grid_geometry import check_map_memory
 from rough_map.map.tiles import is_accumulator
 from rough_map.online import OnlineMapper
-from rough_map.patch import Extraction
+from rough_map.patch import Extraction, options_of
 
 log = logging.getLogger(__name__)
 
@@ -187,14 +187,6 @@ class AnalysisOptions:
         if self.near_far not in ("auto", True, False):
             raise InputError(f"near_far must be 'auto', True or False; got {self.near_far!r}")
 
-    @classmethod
-    def of(cls, options: AnalysisOptions | None, changes: dict[str, Any]) -> AnalysisOptions:
-        """``options`` (default: the defaults) with the keyword ``changes``."""
-        unknown = sorted(set(changes) - {f.name for f in fields(cls)})
-        if unknown:
-            raise InputError(f"analyse() got unexpected keyword arguments {unknown[:5]}")
-        return replace(options or cls(), **changes)
-
 
 def analyse(
     traverse: Traverse,
@@ -239,7 +231,7 @@ def analyse(
         which is not covered by the model file's sha256, edited or of another model).
     """
     try:  # a frame pass given is closed on any error
-        opt = AnalysisOptions.of(options, changes)
+        opt = options_of(AnalysisOptions, options, changes, "analyse")
         if not isinstance(traverse, Traverse):
             raise InputError(
                 f"analyse takes a Traverse (rough_map.io.traverse.load_traverse reads one), "

@@ -408,6 +408,8 @@ def test_analyse_takes_one_input_form(small_traverse: Path, model) -> None:
         analyse(trav, "default")  # type: ignore[arg-type]
     with pytest.raises(InputError, match=r"analyse\(\) got unexpected keyword arguments \['far'\]"):
         analyse(trav, model, far=True)
+    with pytest.raises(InputError, match=r"analyse\(\) options must be a rough_map\.workflow\.An"):
+        analyse(trav, model, {"resolution": 0.2})  # type: ignore[arg-type]
     with pytest.raises(InputError, match=r"near_far must be 'auto', True or False; got 'yes'"):
         AnalysisOptions(near_far="yes")
     whole = analyse(trav, None, AnalysisOptions(near_far=False, resolution=0.2))

@@ -27,6 +27,7 @@ Layout: :mod:`rough_map.patch.spec` (:class:`PatchSpec`, the grid steps, :class:
 """
 
 from rough_map.geometry import compensate_tilt
+from rough_map.patch._params import options_of
 from rough_map.patch.grid import (
     GriddedPatch,
     check_points,
@@ -72,6 +73,7 @@ __all__ = [
     "grid_lattice",
     "grid_points",
     "lattice_patch",
+    "options_of",
     "points_in_patch",
     "pooled_rows",
     "spacing_ladder",

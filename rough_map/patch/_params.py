@@ -13,21 +13,25 @@ a patch has at most ``LIMITS.patch_samples`` samples per side; a plain spectrum
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from numbers import Integral, Real
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
-from rough_map.errors import InputError
+from rough_map.errors import InputError, UnknownOptionError
 
 __all__ = [
     "check_bool",
     "check_choice",
     "check_int",
     "check_real",
+    "options_of",
 ]
+
+T = TypeVar("T")
 
 
 def _show(value: Any) -> str:
@@ -105,3 +109,29 @@ def check_choice(name: str, value: Any, choices: Sequence[str]) -> str:
     if isinstance(value, str) and value in choices:
         return value
     raise InputError(f"{name} must be one of {', '.join(choices)}; got {_show(value)}")
+
+
+def options_of(cls: type[T], options: T | None, changes: dict[str, Any], caller: str) -> T:
+    """The options object (a frozen dataclass ``cls``) that ``caller`` was given: ``options``
+    whole (None: the defaults) with its keyword ``changes``, checked once, as
+    :class:`rough_map.psd.Options` and :class:`rough_map.workflow.AnalysisOptions` are taken.
+
+    Raises
+    ------
+    InputError
+        ``options`` is not a ``cls``, or a change is a bad value (the dataclass's checks).
+    UnknownOptionError
+        A keyword that is not a field of ``cls``.
+    """
+    if options is not None and not isinstance(options, cls):
+        raise InputError(f"{caller}() options must be a {_public_name(cls)}")
+    unknown = sorted(set(changes) - {f.name for f in dataclasses.fields(cls)})  # type: ignore[arg-type]
+    if unknown:
+        raise UnknownOptionError(f"{caller}() got unexpected keyword arguments {unknown[:5]}")
+    return dataclasses.replace(options or cls(), **changes)  # type: ignore[type-var]
+
+
+def _public_name(cls: type) -> str:
+    """``rough_map.psd.Options`` for a class exported by its package, else its module path."""
+    package = cls.__module__.rsplit(".", 1)[0] if cls.__module__.count(".") > 1 else None
+    return f"{package or cls.__module__}.{cls.__qualname__}"

@@ -76,6 +76,7 @@ power law and :class:`PatchRoughness`) and ``_uncertainty`` (the standard errors
 ``se_w``, with the correlation between profiles).
 """
 
+from rough_map.errors import UnknownOptionError
 from rough_map.patch import METHODS
 from rough_map.psd._corrections import GRIDDINGS, grid_log_gain, write_leakage_tables
 from rough_map.psd._fit import PatchRoughness
@@ -86,7 +87,7 @@ from rough_map.psd.estimator import (
     patch_roughness_each,
     profile_psd,
 )
-from rough_map.psd.options import Options, UnknownOptionError
+from rough_map.psd.options import Options
 
 __all__ = [
     "GRIDDINGS",

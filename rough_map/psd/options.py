@@ -8,7 +8,6 @@ changes of the defaults (``method="paper"``), or both (the keywords change the o
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 from numbers import Real
@@ -17,13 +16,9 @@ from typing import Any
 from rough_map.errors import InputError
 from rough_map.limits import LIMITS
 from rough_map.patch import METHODS
-from rough_map.patch._params import check_bool, check_choice, check_int, check_real
+from rough_map.patch._params import check_bool, check_choice, check_int, check_real, options_of
 from rough_map.psd._corrections import GRIDDINGS
 from rough_map.psd._spectra import check_window
-
-
-class UnknownOptionError(InputError, TypeError):
-    """An unknown keyword option (a TypeError too, as Python raises for a bad keyword)."""
 
 
 @dataclass(frozen=True)
@@ -121,11 +116,7 @@ class Options:
 
     @classmethod
     def of(cls, options: Options | None, changes: dict[str, Any], caller: str) -> Options:
-        """``options`` (default: the defaults) with the keyword ``changes`` of ``caller``;
-        an unknown keyword raises :class:`UnknownOptionError`."""
-        if options is not None and not isinstance(options, cls):
-            raise InputError(f"{caller}() options must be a rough_map.psd.Options")
-        unknown = sorted(set(changes) - {f.name for f in dataclasses.fields(cls)})
-        if unknown:
-            raise UnknownOptionError(f"{caller}() got unexpected keyword arguments {unknown[:5]}")
-        return dataclasses.replace(options or cls(), **changes)
+        """``options`` (default: the defaults) with the keyword ``changes`` of ``caller``
+        (:func:`~rough_map.patch._params.options_of`); an unknown keyword raises
+        :class:`UnknownOptionError`."""
+        return options_of(cls, options, changes, caller)
