@@ -18,7 +18,7 @@ them into one :class:`~rough_map.map.grid.GridMap`.
 ``rough-map map`` and :func:`rough_map.workflow.analyse` run the same mapper on recorded
 traverses, with the frames processed in parallel (:func:`rough_map.features.iter_frames`)
 and the classes smoothed over the whole path before they are fused (:meth:`OnlineMapper.add`
-then :meth:`OnlineMapper.fuse_classes`).
+then :meth:`OnlineMapper.finish` with ``late``).
 """
 
 from __future__ import annotations
@@ -261,11 +261,11 @@ class OnlineMapper:
             ``(x, y, z, roll, pitch, yaw)``, m and rad.
         classes : bool
             Classify the frame, filter forward and fuse its posterior now (False: fuse only
-            the roughness and heights, and the classes later with :meth:`fuse_classes`).
+            the roughness and heights, and the classes later: :meth:`finish` with ``late``).
         roughness : bool
             Fuse the patch's R and w now (False: the patch is counted but its roughness
             comes later, e.g. smoothed along the whole path, with
-            :meth:`fuse_classes`'s ``roughness``).
+            :meth:`finish`'s ``roughness``).
         """
         index = len(self._collect.rows)
         self._collect.add(out)
@@ -281,7 +281,7 @@ class OnlineMapper:
         if row["valid"]:
             observation = _observation(row, posterior if classes else None, level, novelty)
             if not roughness:
-                observation["R"] = math.nan  # fused later (fuse_classes)
+                observation["R"] = math.nan  # fused later (finish, late)
         h = out.heights
         touched, area = self.tiles.add_frame(
             x,
@@ -355,24 +355,14 @@ class OnlineMapper:
         """The features table of the frames so far."""
         return self._collect.table()
 
-    def fuse_classes(
+    def _fuse_late(
         self,
         proba: ArrayLike | None,
-        *,
-        levels: bool = True,
-        roughness: Mapping[str, ArrayLike] | None = None,
-        novelty: ArrayLike | None = None,
+        roughness: Mapping[str, ArrayLike] | None,
+        novelty: ArrayLike | None,
     ) -> None:
-        """Fuse class probabilities computed over the whole run (e.g. smoothed), one row
-        per frame added with ``classes=False`` (NaN rows: none; None: no classes), and the
-        frames' roughness levels.
-
-        ``roughness`` gives the roughness of each frame computed over the whole run, for
-        frames added with ``roughness=False``: arrays ``R`` (m³/rad), ``w``, ``sigma_R``
-        (m³/rad) and ``sigma_w``, one value per frame (e.g. smoothed along the path,
-        :class:`rough_map.filter.RoughnessSmoother`); the levels then come from this R.
-        ``novelty`` gives each frame's novelty score (NaN: none;
-        :attr:`rough_map.classify.TerrainPrediction.novelty`), fused with its classes."""
+        """Fuse what the frames added with ``classes=False`` held back (:meth:`finish`'s
+        ``late``): their classes, levels, and roughness and novelty when given."""
         rows = self._collect.rows
         extra = _per_frame(roughness, len(rows))
         if novelty is not None:
@@ -391,7 +381,7 @@ class OnlineMapper:
         # the frames' levels and which rows of p are whole, for all frames at once
         known = np.all(np.isfinite(p), axis=1) if self.classes else np.zeros(len(rows), bool)
         level_of = np.full(len(rows), math.nan)
-        if levels and rows:
+        if rows:
             valid = np.array([bool(row["valid"]) for row in rows])
             R = extra["R"] if "R" in extra else [r["R"] if r["valid"] else math.nan for r in rows]
             level_of = np.where(valid, self._levels(R), math.nan)
@@ -412,7 +402,7 @@ class OnlineMapper:
     def replay(self, *, margin: float = 0.2) -> Iterator[tuple[float, GridMap]]:
         """The map as it grew: after each valid frame, in order, the map around its patch
         (its box plus ``margin`` m) as it then stood, with every observation of the frames
-        so far fused at once (roughness, the classes and levels of :meth:`fuse_classes`),
+        so far fused at once (roughness, the classes and levels fused late by :meth:`finish`),
         as ``(t, window)``; the heights (``elevation``) are not replayed.
 
         The frames are fused again into tiles of their own (kept within :attr:`window` of
@@ -447,10 +437,31 @@ class OnlineMapper:
         finally:
             replayed.close()
 
-    def finish(self, *, margin: float = 1.0) -> GridMap:
+    def finish(
+        self,
+        *,
+        late: bool = False,
+        proba: ArrayLike | None = None,
+        roughness: Mapping[str, ArrayLike] | None = None,
+        novelty: ArrayLike | None = None,
+        margin: float = 1.0,
+    ) -> GridMap:
         """The whole map: estimate layers and ``elevation``, over every patch seen plus
         ``margin`` m. The sums stay in :attr:`tiles` (for :meth:`save_state`) until
-        :meth:`close`."""
+        :meth:`close`.
+
+        With ``late``, what the frames added with ``classes=False`` held back is fused
+        first: the class probabilities computed over the whole run (``proba``, e.g.
+        smoothed; one row per frame, NaN rows: none; None: no classes) and the frames'
+        roughness levels. ``roughness`` gives the roughness of each frame computed over the
+        whole run, for frames added with ``roughness=False``: arrays ``R`` (m³/rad), ``w``,
+        ``sigma_R`` (m³/rad) and ``sigma_w``, one value per frame (e.g. smoothed along the
+        path, :class:`rough_map.filter.RoughnessSmoother`); the levels then come from this
+        R. ``novelty`` gives each frame's novelty score (NaN: none;
+        :attr:`rough_map.classify.TerrainPrediction.novelty`), fused with its classes.
+        """
+        if late:
+            self._fuse_late(proba, roughness, novelty)
         valid = [r["valid"] for r in self._collect.rows]
         attrs = {
             "name": self.name,

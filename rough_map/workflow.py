@@ -268,12 +268,12 @@ def analyse(
     # the frames the class filter leaves out as isolated defects stay out of the smoothing
     defect = None if prediction is None or prediction.mode == "forward" else prediction.defect
     features = smooth_table(features, defect=defect)
-    mapper.fuse_classes(
-        prediction.filtered_proba if prediction is not None else None,
+    grid = mapper.finish(
+        late=True,
+        proba=prediction.filtered_proba if prediction is not None else None,
         roughness=_smoothed(features) if opt.roughness == "smoothed" else None,
         novelty=prediction.novelty if prediction is not None else None,
     )
-    grid = mapper.finish()
     grid.attrs["traverse"] = traverse.name
     log_fused(len(features), np.asarray(features.valid, dtype=bool), grid, resolution)
     result = TraverseAnalysis(traverse, features, prediction, grid, model, extraction)
@@ -353,7 +353,7 @@ def _card_differs(started: FramePass, model: Extraction) -> str:
 
 
 def _smoothed(features: FeatureTable) -> dict[str, np.ndarray]:
-    """The smoothed roughness of the features table, as :meth:`OnlineMapper.fuse_classes`
+    """The smoothed roughness of the features table, as :meth:`OnlineMapper.finish`
     takes it (sigma_R in m³/rad from the standard deviation of ln R)."""
     R = np.asarray(features["R_smooth"], dtype=float)
     return {
