@@ -1,0 +1,235 @@
+"""Height rasters: a surface given as a grid of heights, read on its own grid.
+
+A survey, a DEM or DSM from photogrammetry or lidar, is a grid of heights, not a cloud:
+:func:`open_height_raster` opens it as a :class:`HeightRaster`, which reads a band of rows
+at a time (:meth:`HeightRaster.rows`), so a survey of any size is read in bounded memory.
+
+Formats
+    Any raster GDAL reads, through rasterio (GeoTIFF, COG, Esri ASCII grid, VRT, ...): band
+    1 as heights, its nodata as missing cells (NaN), integer or float, with the band's scale
+    and offset applied. The raster must be north-up with square cells (no rotation), in a
+    projected CRS in metres with an EPSG code (rough_map's CRS is ``local`` or ``EPSG:<n>``,
+    :class:`~rough_map.config.Crs`); heights are read as metres. A geographic CRS (degrees)
+    or one in feet is refused, naming the reprojection that fixes it (``gdalwarp``). A
+    raster without a CRS is read in a local frame, its cells in m.
+
+    A NumPy ``.npy`` grid of heights in m, with its ``spacing`` (m) given: row 0 is the
+    north edge (as in an image or a GeoTIFF), its north-west corner at ``origin``.
+
+Every problem is a one-line :class:`~rough_map.errors.FileFormatError` naming the file and
+the field, or an :class:`~rough_map.errors.InputError` for a bad argument.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rough_map._bounded import clip
+from rough_map._files import PathLike
+from rough_map.config import Crs
+from rough_map.errors import FileFormatError, InputError
+from rough_map.io._check import check_readable
+from rough_map.limits import LIMITS
+
+__all__ = ["HeightRaster", "open_height_raster"]
+
+
+@dataclass(frozen=True)
+class HeightRaster:
+    """A grid of heights on disk, read a band of rows at a time.
+
+    Attributes
+    ----------
+    path : Path
+        The file.
+    shape : tuple of int
+        ``(n_rows, n_cols)``; row 0 is the north edge, columns run east.
+    spacing : float
+        Side of a cell in m.
+    origin : tuple of float
+        World ``(x, y)`` in m of the north-west corner of cell ``[0, 0]``.
+    crs : Crs
+        The world frame of ``origin``.
+    """
+
+    path: Path
+    shape: tuple[int, int]
+    spacing: float
+    origin: tuple[float, float]
+    crs: Crs = field(default_factory=lambda: Crs(code="local"))
+    _array: np.ndarray | None = field(default=None, repr=False, compare=False)
+
+    def rows(self, first: int, count: int) -> np.ndarray:
+        """Heights in m of rows ``first .. first + count - 1`` (float64, NaN: missing).
+
+        Raises
+        ------
+        FileFormatError
+            The file cannot give those rows (truncated or damaged).
+        """
+        if not (0 <= first and count >= 0 and first + count <= self.shape[0]):
+            raise InputError(f"rows {first}..{first + count} outside the {self.shape[0]} rows")
+        if self._array is not None:
+            return np.array(self._array[first : first + count], dtype=np.float64)
+        with _rasterio_errors(self.path), _open(self.path) as ds:
+            from rasterio.windows import Window
+
+            band = ds.read(1, window=Window(0, first, self.shape[1], count), masked=True)
+            scale, offset = ds.scales[0] or 1.0, ds.offsets[0] or 0.0
+        heights = band.astype(np.float64).filled(np.nan)
+        heights = heights * scale + offset
+        heights[~np.isfinite(heights)] = np.nan
+        return heights
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """``(xmin, ymin, xmax, ymax)`` in m."""
+        x0, y0 = self.origin
+        return x0, y0 - self.shape[0] * self.spacing, x0 + self.shape[1] * self.spacing, y0
+
+
+def open_height_raster(
+    path: PathLike,
+    *,
+    spacing: float | None = None,
+    origin: tuple[float, float] = (0.0, 0.0),
+    crs: Any = None,
+) -> HeightRaster:
+    """Open a height raster (see the module docstring for the formats).
+
+    Parameters
+    ----------
+    path : str or PathLike
+        A raster GDAL reads, or a ``.npy`` grid.
+    spacing : float, optional
+        Cell side in m of a ``.npy`` grid (required there; refused for a GDAL raster,
+        which says its own).
+    origin : tuple of float
+        World ``(x, y)`` in m of the north-west corner of a ``.npy`` grid.
+    crs : optional
+        The CRS of a ``.npy`` grid (:meth:`rough_map.config.Crs.from_any`; default local).
+
+    Raises
+    ------
+    FileFormatError
+        Missing, unreadable or hostile file, a geographic or rotated raster, a CRS without
+        an EPSG code, cells that are not square.
+    InputError
+        ``spacing`` missing for a ``.npy`` grid or given for another raster, or not > 0.
+    """
+    path = Path(path)
+    check_readable(path)
+    if path.suffix.lower() == ".npy":
+        return _open_npy(path, spacing, origin, crs)
+    if spacing is not None:
+        raise InputError(f"{path.name}: a GDAL raster gives its own cell size; drop spacing")
+    with _rasterio_errors(path), _open(path) as ds:
+        return _describe(path, ds)
+
+
+def _open_npy(path: Path, spacing: float | None, origin: Any, crs: Any) -> HeightRaster:
+    from rough_map.io.safe_npz import read_npy
+
+    if spacing is None:
+        raise InputError(f"{path.name}: a .npy height grid needs its spacing in m")
+    if not (isinstance(spacing, int | float) and math.isfinite(spacing) and 0 < spacing <= 1e4):
+        raise InputError(f"spacing must be a cell size in m > 0, got {spacing!r}")
+    x0, y0 = (float(v) for v in origin)
+    if not (math.isfinite(x0) and math.isfinite(y0)):
+        raise InputError(f"origin must be finite (x, y) in m, got {origin!r}")
+    heights = read_npy(path)
+    if heights.ndim != 2 or heights.dtype.kind not in "fiu" or min(heights.shape) < 1:
+        raise FileFormatError(
+            path,
+            f"expected a 2-D numeric grid of heights in m; got shape {clip(heights.shape, 40)}, "
+            f"dtype {clip(heights.dtype, 40)}",
+            field="shape",
+        )
+    shape = (int(heights.shape[0]), int(heights.shape[1]))
+    return HeightRaster(path, shape, float(spacing), (x0, y0), Crs.from_any(crs), heights)
+
+
+@contextmanager
+def _open(path: Path) -> Iterator[Any]:
+    import rasterio
+
+    with rasterio.open(path) as ds:
+        yield ds
+
+
+@contextmanager
+def _rasterio_errors(path: Path) -> Iterator[None]:
+    """rasterio's and GDAL's errors on ``path`` as one-line :class:`FileFormatError`."""
+    from rasterio._err import CPLE_BaseError
+    from rasterio.errors import RasterioError
+
+    try:
+        yield
+    except (RasterioError, CPLE_BaseError, OSError) as exc:
+        message = " ".join(str(exc).split())
+        raise FileFormatError(path, f"not a readable raster: {clip(message, 120)}") from None
+
+
+def _describe(path: Path, ds: Any) -> HeightRaster:
+    """The :class:`HeightRaster` of an open rasterio dataset, its header checked."""
+    if ds.count < 1:
+        raise FileFormatError(path, "no band of heights", field="bands")
+    cells = int(ds.width) * int(ds.height)
+    limit = min(LIMITS.raster_cells, path.stat().st_size * LIMITS.deflate_ratio + 2**20)
+    if ds.driver not in ("VRT",) and cells > limit:
+        raise FileFormatError(
+            path, f"declares {ds.width} x {ds.height} cells, more than it holds", field="size"
+        )
+    if np.dtype(ds.dtypes[0]).kind not in "fiu":
+        raise FileFormatError(path, f"band 1 is {ds.dtypes[0]}, not heights", field="dtype")
+    t = ds.transform
+    if t.b != 0 or t.d != 0 or t.a <= 0 or t.e >= 0:
+        raise FileFormatError(
+            path,
+            "not a north-up raster (rotated or flipped geotransform); warp it north-up first "
+            "(gdalwarp)",
+            field="transform",
+        )
+    if not math.isclose(t.a, -t.e, rel_tol=1e-9):
+        raise FileFormatError(
+            path, f"cells of {t.a:g} x {-t.e:g} are not square", field="transform"
+        )
+    crs = Crs(code="local")
+    if ds.crs is not None:
+        if ds.crs.is_geographic:
+            raise FileFormatError(
+                path,
+                "in a geographic CRS (degrees): its cells are not a length; reproject it to a "
+                "projected CRS in m (e.g. gdalwarp -t_srs EPSG:326NN for UTM)",
+                field="crs",
+            )
+        name, unit = ds.crs.linear_units_factor
+        if not math.isclose(float(unit), 1.0):
+            raise FileFormatError(
+                path,
+                f"a CRS in {name}, not metres; reproject it to a CRS in m (gdalwarp -t_srs)",
+                field="crs",
+            )
+        epsg = ds.crs.to_epsg()
+        if epsg is None:
+            raise FileFormatError(
+                path, "a CRS without an EPSG code; reproject it to one (gdalwarp)", field="crs"
+            )
+        crs = Crs(code=f"EPSG:{epsg}")
+    scale, offset = ds.scales[0], ds.offsets[0]
+    if not (math.isfinite(scale or 1.0) and math.isfinite(offset or 0.0)):
+        raise FileFormatError(path, f"scale {scale} and offset {offset}", field="scale")
+    return HeightRaster(
+        path,
+        (int(ds.height), int(ds.width)),
+        float(t.a),
+        (float(t.c), float(t.f)),
+        crs,
+    )

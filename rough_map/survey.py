@@ -1,0 +1,338 @@
+"""The roughness of a whole surface: the paper's patch slid over a height raster.
+
+:func:`roughness_raster` cuts windows of ``window`` m a side from a
+:class:`~rough_map.io.raster.HeightRaster` every ``stride`` m (default the paper's 0.896 m
+patch at half-patch stride), takes the profiles along the raster's rows (west to east) or
+columns (north to south), and measures each window with the estimator
+(:func:`rough_map.psd.patch_roughness_each`), as a traverse's patch is measured. The result
+is a :class:`~rough_map.map.grid.GridMap` in the raster's CRS with one cell per window,
+centred on the window's centre and ``stride`` m a side, so each value sits where its window
+is. :func:`write_roughness_raster` writes it as GeoTIFFs (float bands; the ISO 8608 class in
+a uint8 file with a colour table), PNGs with legends and a CSV, as one set.
+
+Layers: ``R`` (m³/rad at 1 rad/m), ``w``, ``sigma_R``, ``sigma_w`` (spread between the
+window's profiles), ``se_lnR``, ``se_w`` (standard errors of the window's ln R and w),
+``rms`` (m, over the window's profiles), ``band_rms`` (m, over the fitted band: no
+extrapolation), ``power_law`` (1 where the log spectrum is a line over the band, 0 where R
+at 1 rad/m depends on the fit), ``iso_class`` (ISO 8608, A-H) and ``valid``. A window that
+cannot be read (too many missing cells) or whose fit contradicts its own spectrum
+(:attr:`rough_map.psd.PatchRoughness.consistent`) is nodata in every layer but ``valid``
+(0). With ``both_directions`` the reading across (``R_across``, ``w_across``) and the
+anisotropy ``ln(R / R_across)`` are added.
+
+The raster is read a band of window rows at a time, so memory stays bounded whatever its
+size; ``n_jobs`` spreads the bands over processes, with the same numbers as one process.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from rough_map._files import PathLike, output_set
+from rough_map.errors import InputError, PatchError
+from rough_map.io.raster import HeightRaster
+from rough_map.iso8608 import CLASSES
+from rough_map.map.grid import GridMap
+from rough_map.map.grid_geometry import GridGeometry
+from rough_map.patch import DEFAULT_SIZE
+from rough_map.patch._params import check_bool, check_choice, check_real
+from rough_map.psd import PatchRoughness, patch_roughness_each
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "DIRECTIONS",
+    "SURVEY_OUTPUTS",
+    "SurveySpec",
+    "roughness_raster",
+    "write_roughness_raster",
+]
+
+#: Directions the profiles run along: the raster's rows (west to east) or columns.
+DIRECTIONS = ("rows", "columns")
+
+#: What :func:`write_roughness_raster` writes in its folder (replaced as a set).
+SURVEY_OUTPUTS = ("roughness.tif", "roughness_class.*", "roughness.csv", "roughness_*.png")
+
+#: Value layers of a roughness raster: name, units, description.
+_VALUES = (
+    ("R", "m^3/rad", "roughness: fitted PSD at 1 rad/m"),
+    ("w", "1", "waviness: slope of the log PSD"),
+    ("sigma_R", "m^3/rad", "spread of R between the window's profiles"),
+    ("sigma_w", "1", "spread of w between the window's profiles"),
+    ("se_lnR", "1", "standard error of the window's ln R"),
+    ("se_w", "1", "standard error of the window's w"),
+    ("rms", "m", "rms height of the window's detrended profiles"),
+    ("band_rms", "m", "rms height over the fitted band"),
+    ("power_law", "1", "1: the log spectrum is a line over the band; 0: R depends on the fit"),
+)
+_ACROSS = (
+    ("R_across", "m^3/rad", "R of the profiles across the chosen direction"),
+    ("w_across", "1", "w of the profiles across the chosen direction"),
+    ("anisotropy", "1", "ln(R / R_across)"),
+)
+#: Windows measured in one call of the estimator.
+_BATCH = 64
+
+
+@dataclass(frozen=True)
+class SurveySpec:
+    """How a raster is read for roughness.
+
+    Attributes
+    ----------
+    window : float
+        Side of a window in m (default the paper's patch, 0.896 m).
+    stride : float, optional
+        Distance in m between the centres of neighbouring windows; default half a window.
+    direction : {"rows", "columns"}
+        The profiles run along the raster's rows (west to east) or its columns.
+    gridding : {"point", "cell_mean"}
+        How the raster's heights were sampled (:class:`rough_map.psd.Options`): samples of
+        the surface (a DEM interpolated or a CRG grid) or means of many points per cell.
+    both_directions : bool
+        Also measure the profiles across, and the anisotropy.
+    """
+
+    window: float = DEFAULT_SIZE
+    stride: float | None = None
+    direction: str = "rows"
+    gridding: str = "point"
+    both_directions: bool = False
+
+    def __post_init__(self) -> None:
+        check_real("window", self.window, "m", low=0.0, high=1e4, low_open=True)
+        check_real("stride", self.stride, "m", low=0.0, high=1e4, low_open=True, none=True)
+        check_choice("direction", self.direction, DIRECTIONS)
+        check_choice("gridding", self.gridding, ("point", "cell_mean"))
+        check_bool("both_directions", self.both_directions)
+
+    def cells(self, spacing: float) -> tuple[int, int]:
+        """Window side and stride in cells of ``spacing`` m.
+
+        Raises
+        ------
+        InputError
+            A window of fewer than 8 cells, or a stride below one cell.
+        """
+        size = round(self.window / spacing)
+        step = round((self.stride if self.stride is not None else self.window / 2) / spacing)
+        if size < 8:
+            raise InputError(
+                f"a window of {self.window:g} m holds {size} cells of {spacing:g} m; the "
+                "estimator needs at least 8 a side: give a larger --window"
+            )
+        if step < 1:
+            raise InputError(f"stride {self.stride:g} m is less than a cell of {spacing:g} m")
+        return size, step
+
+
+def survey_geometry(raster: HeightRaster, spec: SurveySpec) -> GridGeometry:
+    """The grid of window cells over ``raster``: one cell per window, ``stride`` m a side,
+    centred on the window's centre."""
+    size, step = spec.cells(raster.spacing)
+    rows = (raster.shape[0] - size) // step + 1 if raster.shape[0] >= size else 0
+    cols = (raster.shape[1] - size) // step + 1 if raster.shape[1] >= size else 0
+    if rows < 1 or cols < 1:
+        raise InputError(
+            f"{raster.path.name}: {raster.shape[0]} x {raster.shape[1]} cells of "
+            f"{raster.spacing:g} m hold no window of {size} cells"
+        )
+    b = raster.spacing
+    res = step * b
+    west = raster.origin[0] + (size - step) / 2 * b
+    north = raster.origin[1] - (size - step) / 2 * b
+    return GridGeometry(res, (west, north - rows * res), (rows, cols), raster.crs)
+
+
+def roughness_raster(
+    raster: HeightRaster,
+    spec: SurveySpec | None = None,
+    *,
+    n_jobs: int = 1,
+    progress: bool = False,
+) -> GridMap:
+    """The roughness of every window of ``raster`` (see the module docstring).
+
+    Parameters
+    ----------
+    raster : HeightRaster
+        The heights (:func:`rough_map.io.raster.open_height_raster`).
+    spec : SurveySpec, optional
+        Window, stride, direction; default the paper's patch at half-patch stride along
+        the rows.
+    n_jobs : int
+        Worker processes (-1: every core); the numbers do not depend on it.
+    progress : bool
+        A progress bar on stderr.
+
+    Returns
+    -------
+    GridMap
+        One cell per window, in the raster's CRS.
+
+    Raises
+    ------
+    InputError
+        A window too small for the raster's cells, or a raster smaller than one window.
+    FileFormatError
+        The raster cannot be read.
+    """
+    from joblib import Parallel, delayed
+    from tqdm import tqdm
+
+    spec = spec or SurveySpec()
+    geo = survey_geometry(raster, spec)
+    size, step = spec.cells(raster.spacing)
+    names = [n for n, *_ in _VALUES] + ([n for n, *_ in _ACROSS] if spec.both_directions else [])
+    out = {n: np.full(geo.shape, np.nan) for n in names}
+    iso = np.full(geo.shape, np.nan)
+    valid = np.zeros(geo.shape)
+    n_rows = geo.shape[0]
+    bands = range(n_rows)
+    log.info(
+        "%s: %d x %d windows of %d cells (%.3g m) every %d cells",
+        raster.path.name,
+        n_rows,
+        geo.shape[1],
+        size,
+        size * raster.spacing,
+        step,
+    )
+    jobs = (delayed(_band)(raster, spec, i * step, size, step, geo.shape[1]) for i in bands)
+    results: Iterator[dict[str, NDArray[np.float64]]]
+    if n_jobs == 1:
+        results = (_band(raster, spec, i * step, size, step, geo.shape[1]) for i in bands)
+    else:
+        results = Parallel(n_jobs=n_jobs, return_as="generator")(jobs)
+    for i, band in enumerate(tqdm(results, total=n_rows, desc="windows", disable=not progress)):
+        row = n_rows - 1 - i  # the map's rows run north, the raster's south
+        for n in names:
+            out[n][row] = band[n]
+        iso[row] = band["iso_class"]
+        valid[row] = band["valid"]
+    grid = GridMap(geo, attrs={"source": str(raster.path), "window_m": size * raster.spacing})
+    for name, units, description in (*_VALUES, *(_ACROSS if spec.both_directions else ())):
+        grid.add_layer(name, units=units, description=description, data=out[name])
+    grid.add_layer(
+        "iso_class",
+        units="1",
+        description="ISO 8608 class of R",
+        kind="class",
+        categories=CLASSES,
+        data=iso,
+    )
+    grid.add_layer("valid", units="1", description="1: the window was read", data=valid)
+    return grid
+
+
+def _band(
+    raster: HeightRaster, spec: SurveySpec, first: int, size: int, step: int, n_cols: int
+) -> dict[str, NDArray[np.float64]]:
+    """The readings of one band of windows (rows ``first .. first + size - 1``)."""
+    heights = raster.rows(first, size)
+    names = [n for n, *_ in _VALUES] + [n for n, *_ in _ACROSS]
+    band = {n: np.full(n_cols, np.nan) for n in (*names, "iso_class")}
+    band["valid"] = np.zeros(n_cols)
+    along_rows = spec.direction == "rows"
+    for start in range(0, n_cols, _BATCH):
+        cols = range(start, min(start + _BATCH, n_cols))
+        stack = np.stack([heights[:, j * step : j * step + size] for j in cols])
+        if not along_rows:
+            stack = stack.transpose(0, 2, 1)
+        along = _measure(stack, raster.spacing, spec)
+        across = (
+            _measure(stack.transpose(0, 2, 1), raster.spacing, spec)
+            if spec.both_directions
+            else None
+        )
+        for k, j in enumerate(cols):
+            r = along[k]
+            if not isinstance(r, PatchRoughness) or not r.consistent:
+                continue
+            band["valid"][j] = 1.0
+            for name, value in _values(r).items():
+                band[name][j] = value
+            band["iso_class"][j] = CLASSES.index(r.iso_class)
+            if across is not None and isinstance(across[k], PatchRoughness):
+                a = across[k]
+                assert isinstance(a, PatchRoughness)
+                band["R_across"][j], band["w_across"][j] = a.R, a.w
+                band["anisotropy"][j] = math.log(r.R / a.R) if a.R > 0 and r.R > 0 else math.nan
+    return band
+
+
+def _measure(
+    stack: NDArray[np.float64], spacing: float, spec: SurveySpec
+) -> list[PatchRoughness | PatchError]:
+    """The estimator's reading of each window, a PatchError where it refuses one."""
+    return patch_roughness_each(stack, spacing, gridding=spec.gridding)
+
+
+def _values(r: PatchRoughness) -> dict[str, float]:
+    return {
+        "R": r.R,
+        "w": r.w,
+        "sigma_R": r.sigma_R,
+        "sigma_w": r.sigma_w,
+        "se_lnR": r.se_lnR,
+        "se_w": r.se_w,
+        "rms": r.rms,
+        "band_rms": r.band_rms,
+        "power_law": 1.0 if r.power_law else 0.0,
+    }
+
+
+def write_roughness_raster(
+    grid: GridMap, out_dir: PathLike, *, png: bool = True, progress: bool = False
+) -> dict[str, Path]:
+    """Write a roughness raster as one set in ``out_dir`` (your other files there kept):
+    ``roughness.tif`` (a float32 band per value layer, nodata where no window was read),
+    ``roughness_class.tif`` (uint8 ISO 8608 class with a colour table, nodata 255),
+    ``roughness.csv`` (one row per window read: centre x, y in m and every value) and, with
+    ``png``, ``roughness_<layer>.png`` with legends.
+
+    Returns
+    -------
+    dict of str to Path
+        What was written, by kind (``values``, ``class``, ``csv``, and one per PNG).
+    """
+    from rough_map.export.geotiff import write_class_geotiff, write_values_geotiff
+    from rough_map.export.png import write_pngs
+
+    out = Path(out_dir)
+    values = [n for n in grid.layers if grid.info(n).kind == "value"]
+    written: dict[str, Path] = {}
+    with output_set(out, owned=SURVEY_OUTPUTS) as stage:
+        write_values_geotiff(grid, stage / "roughness.tif", layers=values)
+        write_class_geotiff(grid, stage / "roughness_class.tif", layer="iso_class")
+        _write_csv(grid, stage / "roughness.csv", values)
+        pngs = write_pngs(grid, stage, "roughness", progress=progress) if png else {}
+    written.update(values=out / "roughness.tif", csv=out / "roughness.csv")
+    written["class"] = out / "roughness_class.tif"
+    written.update({f"png_{k}": out / v.name for k, v in pngs.items()})
+    return written
+
+
+def _write_csv(grid: GridMap, path: Path, values: list[str]) -> None:
+    """One row per window read: its centre (m) and its values."""
+    ok = grid["valid"] > 0
+    rows, cols = np.nonzero(ok)
+    x, y = grid.geometry.cell_center(rows, cols)
+    header = ["x", "y", *values, "iso_class"]
+    classes = grid.info("iso_class").categories
+    with path.open("w", encoding="utf-8", newline="") as fh:
+        fh.write(",".join(header) + "\n")
+        for k in range(len(rows)):
+            r, c = rows[k], cols[k]
+            cells = [f"{x[k]:.3f}", f"{y[k]:.3f}"]
+            cells += [f"{grid[n][r, c]:.6g}" for n in values]
+            cells.append(classes[int(grid["iso_class"][r, c])])
+            fh.write(",".join(cells) + "\n")

@@ -1,0 +1,228 @@
+"""Roughness rasters of a whole surface (rough_map.survey, rough_map.io.raster, `survey`):
+known answers on synthetic ISO surfaces, the window cells where the windows are, nodata
+where the survey has none, the same numbers from a GeoTIFF, a .npy grid and any -j, and
+one-line errors on hostile rasters."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+from affine import Affine
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from rough_map.errors import FileFormatError, InputError
+from rough_map.io.raster import open_height_raster
+from rough_map.iso8608 import synthesize_surface
+from rough_map.survey import SurveySpec, roughness_raster, survey_geometry
+
+B = 0.008  # m, the paper's grid step
+PHI0, W = 64e-6, -2.5  # ISO class D, a steep spectrum
+X0, Y0 = 500_000.0, 4_100_000.0  # UTM 33N, m
+
+
+def _surface(shape: tuple[int, int] = (768, 896), seed: int = 1) -> np.ndarray:
+    return synthesize_surface(shape, B, PHI0, W, seed=seed)
+
+
+def _north_up(west: float, north: float, cell: float) -> Affine:
+    return Affine(cell, 0.0, west, 0.0, -cell, north)
+
+
+def _geotiff(
+    path: Path, z: np.ndarray, *, crs: str | None = "EPSG:32633", transform: Affine | None = None
+) -> Path:
+    nodata = -9999.0
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        width=z.shape[1],
+        height=z.shape[0],
+        count=1,
+        dtype="float32",
+        crs=crs,
+        transform=transform or _north_up(X0, Y0, B),
+        nodata=nodata,
+    ) as ds:
+        ds.write(np.where(np.isfinite(z), z, nodata).astype("float32"), 1)
+    return path
+
+
+@pytest.fixture(scope="module")
+def dem(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, np.ndarray]:
+    z = _surface()
+    z[:150, :250] = np.nan  # a corner the survey did not reach
+    return _geotiff(tmp_path_factory.mktemp("dem") / "dem.tif", z), z
+
+
+def test_windows_read_the_surface_they_were_made_from(dem: tuple[Path, np.ndarray]) -> None:
+    path, _ = dem
+    grid = roughness_raster(open_height_raster(path))
+    ok = grid["valid"] > 0
+    assert ok.sum() > 0.8 * ok.size
+    assert abs(np.log(np.median(grid["R"][ok]) / PHI0)) < 0.15
+    assert abs(np.median(grid["w"][ok]) - W) < 0.08
+    assert grid.geometry.crs.code == "EPSG:32633"
+    # ISO class D is index 3; a steep -2.5 surface at D reads within a class of it
+    assert set(np.unique(grid["iso_class"][ok])) <= {2.0, 3.0, 4.0}
+
+
+def test_each_window_cell_sits_on_its_window(dem: tuple[Path, np.ndarray]) -> None:
+    """Window (i, j) of 112 cells every 56 spans raster rows 56 i .. 56 i + 111: its cell's
+    centre is the window's centre, and the nodata corner is nodata in the output."""
+    path, z = dem
+    raster = open_height_raster(path)
+    geo = survey_geometry(raster, SurveySpec())
+    assert geo.resolution == pytest.approx(56 * B) and geo.shape == (
+        (768 - 112) // 56 + 1,
+        (896 - 112) // 56 + 1,
+    )
+    grid = roughness_raster(raster)
+    rows, cols = geo.shape
+    for i, j in ((0, 0), (3, 7), (rows - 1, cols - 1)):
+        x, y = geo.cell_center([rows - 1 - i], [j])  # map rows run north
+        assert x[0] == pytest.approx(X0 + (56 * j + 56) * B)
+        assert y[0] == pytest.approx(Y0 - (56 * i + 56) * B)
+        window = z[56 * i : 56 * i + 112, 56 * j : 56 * j + 112]
+        unread = np.isnan(window).all(axis=1).mean() > 0.5
+        assert (grid["valid"][rows - 1 - i, j] == 0) == unread, (i, j)
+
+
+def test_geotiff_npy_and_jobs_give_the_same_numbers(
+    dem: tuple[Path, np.ndarray], tmp_path: Path
+) -> None:
+    path, z = dem
+    one = roughness_raster(open_height_raster(path))
+    two = roughness_raster(open_height_raster(path), n_jobs=2)
+    for name in one.layers:
+        assert np.array_equal(one[name], two[name], equal_nan=True), name
+    np.save(tmp_path / "dem.npy", z.astype(np.float32))
+    grid = roughness_raster(
+        open_height_raster(tmp_path / "dem.npy", spacing=B, origin=(X0, Y0), crs="EPSG:32633")
+    )
+    assert grid.geometry == one.geometry
+    ok = one["valid"] > 0
+    np.testing.assert_array_equal(grid["valid"], one["valid"])
+    np.testing.assert_allclose(grid["R"][ok], one["R"][ok], rtol=1e-9)
+
+
+def test_profiles_along_the_columns_are_the_rows_of_the_transpose(tmp_path: Path) -> None:
+    z = _surface((448, 448), seed=4)
+    np.save(tmp_path / "z.npy", z)
+    np.save(tmp_path / "t.npy", np.ascontiguousarray(z.T))
+    cols = roughness_raster(
+        open_height_raster(tmp_path / "z.npy", spacing=B), SurveySpec(direction="columns")
+    )
+    rows = roughness_raster(open_height_raster(tmp_path / "t.npy", spacing=B))
+    # window (i, j) of z is window (j, i) of its transpose; the map's rows run north
+    a = cols["R"][::-1]
+    b = rows["R"][::-1].T
+    np.testing.assert_allclose(a, b, rtol=1e-12)
+    both = roughness_raster(
+        open_height_raster(tmp_path / "z.npy", spacing=B), SurveySpec(both_directions=True)
+    )
+    ok = both["valid"] > 0
+    # an isotropic surface: the same roughness either way, about
+    assert abs(np.median(both["anisotropy"][ok])) < 0.3
+    np.testing.assert_allclose(both["R_across"][::-1], cols["R"][::-1], rtol=1e-12)
+
+
+@settings(max_examples=8, deadline=None)
+@given(
+    a=st.floats(-0.2, 0.2),
+    b=st.floats(-0.2, 0.2),
+    c=st.floats(-100.0, 100.0),
+)
+def test_a_tilted_or_raised_survey_reads_the_same(a: float, b: float, c: float) -> None:
+    """Every profile is detrended: a plane under the surface changes no window's R or w."""
+    z = _surface((224, 224), seed=2)
+    yy, xx = np.mgrid[0:224, 0:224] * B
+    with tempfile.TemporaryDirectory() as tmp:
+        np.save(Path(tmp) / "z.npy", z)
+        np.save(Path(tmp) / "p.npy", z + a * xx + b * yy + c)
+        flat = roughness_raster(open_height_raster(Path(tmp) / "z.npy", spacing=B))
+        tilted = roughness_raster(open_height_raster(Path(tmp) / "p.npy", spacing=B))
+    # to rounding: a plane of tens of cm leaves the mm of roughness ~14 digits
+    np.testing.assert_allclose(tilted["R"], flat["R"], rtol=1e-4)
+    np.testing.assert_allclose(tilted["w"], flat["w"], atol=1e-4)
+
+
+def test_the_command_writes_the_rasters_as_a_set(dem: tuple[Path, np.ndarray], tmp_path: Path):
+    path, _ = dem
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    proc = subprocess.run(
+        [sys.executable, "-m", "rough_map", "survey", str(path), "--out", str(out), "--json"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads(proc.stdout)
+    assert summary["crs"] == "EPSG:32633" and summary["window_m"] == pytest.approx(0.896)
+    assert summary["stride_m"] == pytest.approx(0.448)
+    assert (out / "notes.txt").read_text() == "mine"
+    with rasterio.open(out / "roughness.tif") as ds:
+        assert ds.crs.to_epsg() == 32633
+        assert ds.transform.a == pytest.approx(0.448)
+        assert ds.transform.c == pytest.approx(X0 + 28 * B)  # the first cell's west edge
+        assert ds.transform.f == pytest.approx(Y0 - 28 * B)
+        bands = {d: i + 1 for i, d in enumerate(ds.descriptions)}
+        R = ds.read(bands["R"], masked=True)
+        assert R.mask[0, 0] and not R.mask[-1, -1]  # nodata where the survey has none
+    with rasterio.open(out / "roughness_class.tif") as ds:
+        assert ds.dtypes[0] == "uint8" and ds.nodata == 255
+        assert len(ds.colormap(1)) >= 8
+        assert ds.tags(1)["CLASS_3"] == "D"
+    lines = (out / "roughness.csv").read_text().splitlines()
+    assert lines[0].startswith("x,y,R,w,") and len(lines) - 1 == summary["windows_read"]
+    assert (out / "roughness_R.png").stat().st_size > 1000
+
+
+def test_hostile_rasters_get_one_line(tmp_path: Path) -> None:
+    z = _surface((128, 128), seed=3)
+    geo = _geotiff(tmp_path / "deg.tif", z, crs="EPSG:4326", transform=_north_up(10, 45, 1e-7))
+    with pytest.raises(FileFormatError, match=r"deg\.tif \[crs\]: in a geographic CRS \(degrees\)"):
+        open_height_raster(geo)
+    feet = _geotiff(tmp_path / "ft.tif", z, crs="EPSG:2229")  # California zone 5, US feet
+    with pytest.raises(FileFormatError, match=r"ft\.tif \[crs\]: a CRS in US survey foot"):
+        open_height_raster(feet)
+    rotated = Affine(B, 0.001, X0, 0.0, -B, Y0)
+    with pytest.raises(FileFormatError, match=r"rot\.tif \[transform\]: not a north-up raster"):
+        open_height_raster(_geotiff(tmp_path / "rot.tif", z, transform=rotated))
+    oblong = Affine(B, 0.0, X0, 0.0, -2 * B, Y0)
+    with pytest.raises(FileFormatError, match=r"long\.tif \[transform\]: cells of 0.008 x 0.016"):
+        open_height_raster(_geotiff(tmp_path / "long.tif", z, transform=oblong))
+    good = _geotiff(tmp_path / "good.tif", z).read_bytes()
+    (tmp_path / "cut.tif").write_bytes(good[: len(good) // 2])
+    with pytest.raises(FileFormatError, match=r"cut\.tif: not a readable raster"):
+        roughness_raster(open_height_raster(tmp_path / "cut.tif"))
+    (tmp_path / "empty.tif").write_bytes(b"")
+    with pytest.raises(FileFormatError, match=r"empty\.tif"):
+        open_height_raster(tmp_path / "empty.tif")
+    np.save(tmp_path / "cube.npy", np.zeros((4, 4, 4)))
+    with pytest.raises(FileFormatError, match=r"cube\.npy \[shape\]: expected a 2-D numeric"):
+        open_height_raster(tmp_path / "cube.npy", spacing=B)
+    np.save(tmp_path / "z.npy", z)
+    with pytest.raises(InputError, match=r"z\.npy: a \.npy height grid needs its spacing"):
+        open_height_raster(tmp_path / "z.npy")
+    with pytest.raises(InputError, match=r"spacing must be a cell size in m > 0, got nan"):
+        open_height_raster(tmp_path / "z.npy", spacing=float("nan"))
+    with pytest.raises(InputError, match=r"good\.tif: a GDAL raster gives its own cell size"):
+        open_height_raster(tmp_path / "good.tif", spacing=B)
+    raster = open_height_raster(tmp_path / "z.npy", spacing=B)
+    with pytest.raises(InputError, match=r"holds 5 cells of 0.008 m; the estimator needs"):
+        roughness_raster(raster, SurveySpec(window=0.04))
+    with pytest.raises(InputError, match=r"z\.npy: 128 x 128 cells of 0.008 m hold no window"):
+        roughness_raster(raster, SurveySpec(window=2.0))
+    with pytest.raises(InputError, match=r"direction must be one of"):
+        SurveySpec(direction="diagonal")
