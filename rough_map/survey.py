@@ -37,6 +37,8 @@ from numpy.typing import NDArray
 
 from rough_map._files import PathLike, output_set
 from rough_map.errors import InputError, PatchError
+from rough_map.export.geotiff import write_class_geotiff, write_values_geotiff
+from rough_map.export.png import write_pngs
 from rough_map.io.raster import HeightRaster
 from rough_map.iso8608 import CLASSES
 from rough_map.map.grid import GridMap
@@ -304,9 +306,6 @@ def write_roughness_raster(
     dict of str to Path
         What was written, by kind (``values``, ``class``, ``csv``, and one per PNG).
     """
-    from rough_map.export.geotiff import write_class_geotiff, write_values_geotiff
-    from rough_map.export.png import write_pngs
-
     out = Path(out_dir)
     values = [n for n in grid.layers if grid.info(n).kind == "value"]
     written: dict[str, Path] = {}

@@ -36,6 +36,7 @@ from rough_map._files import PathLike
 from rough_map.config import Crs
 from rough_map.errors import FileFormatError, InputError
 from rough_map.io._check import check_readable
+from rough_map.io.safe_npz import read_npy
 from rough_map.limits import LIMITS
 
 __all__ = ["HeightRaster", "open_height_raster"]
@@ -135,8 +136,6 @@ def open_height_raster(
 
 
 def _open_npy(path: Path, spacing: float | None, origin: Any, crs: Any) -> HeightRaster:
-    from rough_map.io.safe_npz import read_npy
-
     if spacing is None:
         raise InputError(f"{path.name}: a .npy height grid needs its spacing in m")
     if not (isinstance(spacing, int | float) and math.isfinite(spacing) and 0 < spacing <= 1e4):
