@@ -169,6 +169,45 @@ class Crs(_Model):
             "+x_0=0 +y_0=0 +ellps=WGS84 +units=m +no_defs"
         )
 
+    @classmethod
+    def from_rasterio(cls, crs: Any) -> Crs:
+        """The :class:`Crs` of a :class:`rasterio.crs.CRS`, the inverse of :meth:`rasterio`:
+        ``EPSG:<n>`` for a projected CRS in metres with an EPSG code, ``local`` for an
+        engineering CRS (:data:`LOCAL_WKT`) and ``local`` with its geodetic origin for the
+        transverse Mercator of :meth:`proj_string` (the altitude is not kept).
+
+        Raises
+        ------
+        InputError
+            A geographic CRS (degrees), one in another unit than the metre, or one without
+            an EPSG code that is not one of rough_map's local frames.
+        """
+        if crs.is_geographic:
+            raise InputError(
+                "a geographic CRS (degrees): its cells are not a length; reproject it to a "
+                "projected CRS in m (e.g. gdalwarp -t_srs EPSG:326NN for UTM)"
+            )
+        if not crs.is_projected:  # an engineering CRS: rough_map's local frame
+            return cls(code="local")
+        name, unit = crs.linear_units_factor
+        if not math.isclose(float(unit), 1.0):
+            raise InputError(
+                f"a CRS in {name}, not metres; reproject it to a CRS in m (gdalwarp -t_srs)"
+            )
+        epsg = crs.to_epsg()
+        if epsg is not None:
+            return cls(code=f"EPSG:{epsg}")
+        p = crs.to_dict()
+        if (
+            p.get("proj") == "tmerc"
+            and p.get("k", 1) == 1
+            and not p.get("x_0")
+            and not p.get("y_0")
+        ):
+            origin = {"lat": float(p.get("lat_0", 0.0)), "lon": float(p.get("lon_0", 0.0))}
+            return cls.model_validate({"code": "local", "origin": origin})
+        raise InputError("a CRS without an EPSG code; reproject it to one (gdalwarp -t_srs)")
+
     def rasterio(self) -> Any:
         """This CRS as a :class:`rasterio.crs.CRS` (the one conversion every writer and
         reader uses): the EPSG code; for a local frame with a geodetic origin the transverse

@@ -7,8 +7,9 @@ columns (north to south), and measures each window with the estimator
 (:func:`rough_map.psd.patch_roughness_each`), as a traverse's patch is measured. The result
 is a :class:`~rough_map.map.grid.GridMap` in the raster's CRS with one cell per window,
 centred on the window's centre and ``stride`` m a side, so each value sits where its window
-is. :func:`write_roughness_raster` writes it as GeoTIFFs (float bands; the ISO 8608 class in
-a uint8 file with a colour table), PNGs with legends and a CSV, as one set.
+is. :func:`rough_map.export.survey_files.write_roughness_raster` writes it as GeoTIFFs
+(float bands; the ISO 8608 class in a uint8 file with a colour table), PNGs with legends
+and a CSV, as one set.
 
 Layers: ``R`` (m³/rad at 1 rad/m), ``w``, ``sigma_R``, ``sigma_w`` (spread between the
 window's profiles), ``se_lnR``, ``se_w`` (standard errors of the window's ln R and w),
@@ -30,15 +31,12 @@ import logging
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
+from threadpoolctl import threadpool_limits
 
-from rough_map._files import PathLike, output_set
 from rough_map.errors import InputError, PatchError
-from rough_map.export.geotiff import write_class_geotiff, write_values_geotiff
-from rough_map.export.png import write_pngs
 from rough_map.io.raster import HeightRaster
 from rough_map.iso8608 import CLASSES
 from rough_map.map.grid import GridMap
@@ -51,17 +49,13 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "DIRECTIONS",
-    "SURVEY_OUTPUTS",
     "SurveySpec",
     "roughness_raster",
-    "write_roughness_raster",
+    "survey_geometry",
 ]
 
 #: Directions the profiles run along: the raster's rows (west to east) or columns.
 DIRECTIONS = ("rows", "columns")
-
-#: What :func:`write_roughness_raster` writes in its folder (replaced as a set).
-SURVEY_OUTPUTS = ("roughness.tif", "roughness_class.*", "roughness.csv", "roughness_*.png")
 
 #: Value layers of a roughness raster: name, units, description.
 _VALUES = (
@@ -82,6 +76,8 @@ _ACROSS = (
 )
 #: Windows measured in one call of the estimator.
 _BATCH = 64
+#: Raster rows a job reads at once (about: whole bands of windows).
+_STRIP_ROWS = 512
 
 
 @dataclass(frozen=True)
@@ -197,29 +193,38 @@ def roughness_raster(
     out = {n: np.full(geo.shape, np.nan) for n in names}
     iso = np.full(geo.shape, np.nan)
     valid = np.zeros(geo.shape)
-    n_rows = geo.shape[0]
-    bands = range(n_rows)
+    n_rows, n_cols = geo.shape
     log.info(
         "%s: %d x %d windows of %d cells (%.3g m) every %d cells",
         raster.path.name,
         n_rows,
-        geo.shape[1],
+        n_cols,
         size,
         size * raster.spacing,
         step,
     )
-    jobs = (delayed(_band)(raster, spec, i * step, size, step, geo.shape[1]) for i in bands)
-    results: Iterator[dict[str, NDArray[np.float64]]]
+    # a job is a strip of bands of windows, read once: the raster's rows are read once
+    # (not once per band they fall in) and in blocks of a few hundred, as GDAL stores them
+    per_strip = max(1, math.ceil(_STRIP_ROWS / step))
+    strips = [(b, min(per_strip, n_rows - b)) for b in range(0, n_rows, per_strip)]
+    results: Iterator[list[dict[str, NDArray[np.float64]]]]
     if n_jobs == 1:
-        results = (_band(raster, spec, i * step, size, step, geo.shape[1]) for i in bands)
+        results = (_strip(raster, spec, b, k, size, step, n_cols) for b, k in strips)
     else:
-        results = Parallel(n_jobs=n_jobs, return_as="generator")(jobs)
-    for i, band in enumerate(tqdm(results, total=n_rows, desc="windows", disable=not progress)):
-        row = n_rows - 1 - i  # the map's rows run north, the raster's south
-        for n in names:
-            out[n][row] = band[n]
-        iso[row] = band["iso_class"]
-        valid[row] = band["valid"]
+        results = Parallel(n_jobs=n_jobs, return_as="generator")(
+            delayed(_strip)(raster, spec, b, k, size, step, n_cols) for b, k in strips
+        )
+    with tqdm(total=n_rows * n_cols, desc="windows", unit="win", disable=not progress) as bar:
+        i = 0
+        for strip in results:
+            for band in strip:
+                row = n_rows - 1 - i  # the map's rows run north, the raster's south
+                for n in names:
+                    out[n][row] = band[n]
+                iso[row] = band["iso_class"]
+                valid[row] = band["valid"]
+                i += 1
+                bar.update(n_cols)
     grid = GridMap(geo, attrs={"source": str(raster.path), "window_m": size * raster.spacing})
     for name, units, description in (*_VALUES, *(_ACROSS if spec.both_directions else ())):
         grid.add_layer(name, units=units, description=description, data=out[name])
@@ -235,11 +240,35 @@ def roughness_raster(
     return grid
 
 
+def _strip(
+    raster: HeightRaster,
+    spec: SurveySpec,
+    first_band: int,
+    n_bands: int,
+    size: int,
+    step: int,
+    n_cols: int,
+) -> list[dict[str, NDArray[np.float64]]]:
+    """The readings of ``n_bands`` bands of windows from ``first_band`` on, their rows read
+    in one piece."""
+    first = first_band * step
+    heights = raster.rows(first, (n_bands - 1) * step + size)
+    with threadpool_limits(1):  # small matrices per window: threads only cost
+        return [
+            _band(heights[k * step : k * step + size], raster.spacing, spec, size, step, n_cols)
+            for k in range(n_bands)
+        ]
+
+
 def _band(
-    raster: HeightRaster, spec: SurveySpec, first: int, size: int, step: int, n_cols: int
+    heights: NDArray[np.float64],
+    spacing: float,
+    spec: SurveySpec,
+    size: int,
+    step: int,
+    n_cols: int,
 ) -> dict[str, NDArray[np.float64]]:
-    """The readings of one band of windows (rows ``first .. first + size - 1``)."""
-    heights = raster.rows(first, size)
+    """The readings of one band of windows, its ``size`` rows of ``heights`` (m)."""
     names = [n for n, *_ in _VALUES] + [n for n, *_ in _ACROSS]
     band = {n: np.full(n_cols, np.nan) for n in (*names, "iso_class")}
     band["valid"] = np.zeros(n_cols)
@@ -249,12 +278,8 @@ def _band(
         stack = np.stack([heights[:, j * step : j * step + size] for j in cols])
         if not along_rows:
             stack = stack.transpose(0, 2, 1)
-        along = _measure(stack, raster.spacing, spec)
-        across = (
-            _measure(stack.transpose(0, 2, 1), raster.spacing, spec)
-            if spec.both_directions
-            else None
-        )
+        along = _measure(stack, spacing, spec)
+        across = _measure(stack.transpose(0, 2, 1), spacing, spec) if spec.both_directions else None
         for k, j in enumerate(cols):
             r = along[k]
             if not isinstance(r, PatchRoughness) or not r.consistent:
@@ -290,48 +315,3 @@ def _values(r: PatchRoughness) -> dict[str, float]:
         "band_rms": r.band_rms,
         "power_law": 1.0 if r.power_law else 0.0,
     }
-
-
-def write_roughness_raster(
-    grid: GridMap, out_dir: PathLike, *, png: bool = True, progress: bool = False
-) -> dict[str, Path]:
-    """Write a roughness raster as one set in ``out_dir`` (your other files there kept):
-    ``roughness.tif`` (a float32 band per value layer, nodata where no window was read),
-    ``roughness_class.tif`` (uint8 ISO 8608 class with a colour table, nodata 255),
-    ``roughness.csv`` (one row per window read: centre x, y in m and every value) and, with
-    ``png``, ``roughness_<layer>.png`` with legends.
-
-    Returns
-    -------
-    dict of str to Path
-        What was written, by kind (``values``, ``class``, ``csv``, and one per PNG).
-    """
-    out = Path(out_dir)
-    values = [n for n in grid.layers if grid.info(n).kind == "value"]
-    written: dict[str, Path] = {}
-    with output_set(out, owned=SURVEY_OUTPUTS) as stage:
-        write_values_geotiff(grid, stage / "roughness.tif", layers=values)
-        write_class_geotiff(grid, stage / "roughness_class.tif", layer="iso_class")
-        _write_csv(grid, stage / "roughness.csv", values)
-        pngs = write_pngs(grid, stage, "roughness", progress=progress) if png else {}
-    written.update(values=out / "roughness.tif", csv=out / "roughness.csv")
-    written["class"] = out / "roughness_class.tif"
-    written.update({f"png_{k}": out / v.name for k, v in pngs.items()})
-    return written
-
-
-def _write_csv(grid: GridMap, path: Path, values: list[str]) -> None:
-    """One row per window read: its centre (m) and its values."""
-    ok = grid["valid"] > 0
-    rows, cols = np.nonzero(ok)
-    x, y = grid.geometry.cell_center(rows, cols)
-    header = ["x", "y", *values, "iso_class"]
-    classes = grid.info("iso_class").categories
-    with path.open("w", encoding="utf-8", newline="") as fh:
-        fh.write(",".join(header) + "\n")
-        for k in range(len(rows)):
-            r, c = rows[k], cols[k]
-            cells = [f"{x[k]:.3f}", f"{y[k]:.3f}"]
-            cells += [f"{grid[n][r, c]:.6g}" for n in values]
-            cells.append(classes[int(grid["iso_class"][r, c])])
-            fh.write(",".join(cells) + "\n")

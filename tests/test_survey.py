@@ -18,10 +18,13 @@ from affine import Affine
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from rough_map.config import Crs
 from rough_map.errors import FileFormatError, InputError
 from rough_map.io.raster import open_height_raster
+from rough_map.io.truth_raster import write_dem_geotiff
 from rough_map.iso8608 import synthesize_surface
 from rough_map.survey import SurveySpec, roughness_raster, survey_geometry
+from rough_map.types import HeightField
 
 B = 0.008  # m, the paper's grid step
 PHI0, W = 64e-6, -2.5  # ISO class D, a steep spectrum
@@ -194,7 +197,7 @@ def test_hostile_rasters_get_one_line(tmp_path: Path) -> None:
     with pytest.raises(FileFormatError, match=r"deg\.tif \[crs\]: in a geographic CRS \(degrees\)"):
         open_height_raster(geo)
     feet = _geotiff(tmp_path / "ft.tif", z, crs="EPSG:2229")  # California zone 5, US feet
-    with pytest.raises(FileFormatError, match=r"ft\.tif \[crs\]: a CRS in US survey foot"):
+    with pytest.raises(FileFormatError, match=r"ft\.tif \[crs\]: in a CRS in US survey foot"):
         open_height_raster(feet)
     rotated = Affine(B, 0.001, X0, 0.0, -B, Y0)
     with pytest.raises(FileFormatError, match=r"rot\.tif \[transform\]: not a north-up raster"):
@@ -226,3 +229,34 @@ def test_hostile_rasters_get_one_line(tmp_path: Path) -> None:
         roughness_raster(raster, SurveySpec(window=2.0))
     with pytest.raises(InputError, match=r"direction must be one of"):
         SurveySpec(direction="diagonal")
+
+
+@pytest.mark.parametrize(
+    "crs",
+    [
+        {"code": "local"},
+        {"code": "local", "origin": {"lat": 40.3515, "lon": 18.175}},
+        {"code": "EPSG:32633"},
+    ],
+)
+def test_a_crs_reads_back_from_its_raster_form(crs: dict) -> None:
+    value = Crs.from_any(crs)
+    assert Crs.from_rasterio(value.rasterio()) == value
+
+
+def test_the_simulated_dem_is_the_world_every_8_mm(tmp_path: Path) -> None:
+    """``simulate --dem``: the world's heights every 4th cell of 2 mm, placed where they are
+    (cell centres on the world's), read back by the survey in the traverse's CRS."""
+    rng = np.random.default_rng(0)
+    heights = rng.normal(0, 1e-3, size=(301, 481))
+    world = HeightField(heights, 0.002, origin=(-0.4, -0.3))
+    crs = Crs.from_any({"code": "local", "origin": {"lat": 40.0, "lon": 18.0}})
+    path = write_dem_geotiff(world, tmp_path / "dem.tif", crs.rasterio(), 0.008)
+    raster = open_height_raster(path)
+    assert raster.shape == (76, 121) and raster.spacing == pytest.approx(0.008)
+    assert raster.crs == crs
+    dem = raster.rows(0, raster.shape[0])
+    np.testing.assert_allclose(dem[::-1], heights[::4, ::4].astype(np.float32), rtol=0, atol=0)
+    # the west edge is half a DEM cell west of the world's first centre
+    assert raster.origin[0] == pytest.approx(-0.4 - 0.004)
+    assert raster.origin[1] == pytest.approx(-0.3 + 300 * 0.002 + 0.004)

@@ -47,6 +47,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="skip DIR/world_truth.tif, the true classes as a class GeoTIFF (the truth "
         "`rough-map score` reads; uint8 at the world's 2 mm spacing, names in its tags)",
     )
+    p.add_argument(
+        "--dem",
+        type=positive_float("m"),
+        nargs="?",
+        const=0.008,
+        metavar="M",
+        help="also write DIR/world_dem.tif, the true heights as a GeoTIFF DEM sampled every M "
+        "m (default 0.008, the paper's grid), for `rough-map survey`",
+    )
     _add_course_args(p)
     _add_sensor_args(p)
     _add_recording_args(p)
@@ -155,7 +164,7 @@ def _add_recording_args(p: argparse.ArgumentParser) -> None:
 #: What ``simulate`` writes at the top of ``--out``: an existing folder has these replaced as
 #: a set, the user's other files kept.
 SIMULATE_OUTPUTS = ("traverse.json", "traverse.yaml", "traverse.yml", "clouds", "left", "right",
-                    "world_truth*")  # fmt: skip
+                    "world_truth*", "world_dem*")  # fmt: skip
 
 
 def run(args: argparse.Namespace) -> int:
@@ -185,12 +194,15 @@ def run(args: argparse.Namespace) -> int:
             progress=args.progress,
         )
         truth = None if args.no_truth_geotiff else _write_truth_geotiff(stage)
+        dem = None if args.dem is None else _write_dem_geotiff(stage, args.dem)
     path = args.out / staged.relative_to(stage)
     print(path)
     status(args, f"simulated the {args.course} course into {args.out}")
     if truth is not None:
         written = args.out / truth.relative_to(stage)
         status(args, f"wrote its true classes to {written} (for rough-map score --truth)")
+    if dem is not None:
+        status(args, f"wrote its true heights to {args.out / dem.relative_to(stage)}")
     if args.bag is not None:
         from rough_map.io.rosbag import write_example_bag
 
@@ -214,3 +226,17 @@ def _write_truth_geotiff(folder: Path) -> Path:
     if world is None:
         raise InputError(f"{folder}: the simulated traverse has no world truth")
     return write_truth_geotiff(world, folder / TRUTH_GEOTIFF, traverse.spec.crs.rasterio())
+
+
+def _write_dem_geotiff(folder: Path, spacing: float) -> Path:
+    """Write the simulated world's heights as ``folder/world_dem.tif``, sampled every
+    ``spacing`` m, in the traverse's CRS."""
+    from rough_map.io.traverse import load_traverse
+    from rough_map.io.truth import traverse_truth
+    from rough_map.io.truth_raster import DEM_GEOTIFF, write_dem_geotiff
+
+    traverse = load_traverse(folder)
+    world = traverse_truth(traverse)
+    if world is None:
+        raise InputError(f"{folder}: the simulated traverse has no world truth")
+    return write_dem_geotiff(world, folder / DEM_GEOTIFF, traverse.spec.crs.rasterio(), spacing)

@@ -96,8 +96,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from rough_map.export.survey_files import write_roughness_raster
     from rough_map.io.raster import open_height_raster
-    from rough_map.survey import SurveySpec, roughness_raster, write_roughness_raster
+    from rough_map.survey import SurveySpec, roughness_raster
 
     npy = args.raster.suffix.lower() == ".npy"
     raster = open_height_raster(

@@ -80,13 +80,24 @@ class HeightRaster:
         if self._array is not None:
             return np.array(self._array[first : first + count], dtype=np.float64)
         with _rasterio_errors(self.path), _open(self.path) as ds:
+            from rasterio.enums import MaskFlags
             from rasterio.windows import Window
 
-            band = ds.read(1, window=Window(0, first, self.shape[1], count), masked=True)
-            scale, offset = ds.scales[0] or 1.0, ds.offsets[0] or 0.0
-        heights = band.astype(np.float64).filled(np.nan)
-        heights = heights * scale + offset
-        heights[~np.isfinite(heights)] = np.nan
+            window = Window(0, first, self.shape[1], count)
+            raw = ds.read(1, window=window)
+            heights = raw.astype(np.float64)
+            scale, offset = ds.scales[0], ds.offsets[0]
+            if scale not in (None, 1.0):
+                heights *= scale
+            if offset not in (None, 0.0):
+                heights += offset
+            missing = ~np.isfinite(heights)
+            nodata = ds.nodata
+            if nodata is not None and math.isfinite(nodata):
+                missing |= raw == nodata
+            if any(f in (MaskFlags.per_dataset, MaskFlags.alpha) for f in ds.mask_flag_enums[0]):
+                missing |= ds.read_masks(1, window=window) == 0
+        heights[missing] = np.nan
         return heights
 
     @property
@@ -202,26 +213,10 @@ def _describe(path: Path, ds: Any) -> HeightRaster:
         )
     crs = Crs(code="local")
     if ds.crs is not None:
-        if ds.crs.is_geographic:
-            raise FileFormatError(
-                path,
-                "in a geographic CRS (degrees): its cells are not a length; reproject it to a "
-                "projected CRS in m (e.g. gdalwarp -t_srs EPSG:326NN for UTM)",
-                field="crs",
-            )
-        name, unit = ds.crs.linear_units_factor
-        if not math.isclose(float(unit), 1.0):
-            raise FileFormatError(
-                path,
-                f"a CRS in {name}, not metres; reproject it to a CRS in m (gdalwarp -t_srs)",
-                field="crs",
-            )
-        epsg = ds.crs.to_epsg()
-        if epsg is None:
-            raise FileFormatError(
-                path, "a CRS without an EPSG code; reproject it to one (gdalwarp)", field="crs"
-            )
-        crs = Crs(code=f"EPSG:{epsg}")
+        try:
+            crs = Crs.from_rasterio(ds.crs)
+        except InputError as err:
+            raise FileFormatError(path, f"in {err}", field="crs") from None
     scale, offset = ds.scales[0], ds.offsets[0]
     if not (math.isfinite(scale or 1.0) and math.isfinite(offset or 0.0)):
         raise FileFormatError(path, f"scale {scale} and offset {offset}", field="scale")

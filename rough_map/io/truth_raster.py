@@ -45,16 +45,21 @@ from rough_map.limits import LIMITS
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "DEM_GEOTIFF",
     "NO_TRUTH_NAMES",
     "TRUTH_GEOTIFF",
     "TRUTH_NODATA",
     "canonical_name",
     "read_class_names",
+    "write_dem_geotiff",
     "write_truth_geotiff",
 ]
 
 #: File name of the class truth GeoTIFF in a simulated traverse folder.
 TRUTH_GEOTIFF = "world_truth.tif"
+
+#: File name of the true heights as a GeoTIFF DEM (``rough-map simulate --dem``).
+DEM_GEOTIFF = "world_dem.tif"
 
 #: Nodata of the truth GeoTIFFs rough_map writes (uint8).
 TRUTH_NODATA = 255
@@ -275,4 +280,78 @@ def write_truth_geotiff(
             **{f"CLASS_{i}": n for i, n in enumerate(names)},
         )
     log.info("wrote %s (%d x %d truth cells of %g m)", path, ny, nx, s)
+    return path
+
+
+def write_dem_geotiff(world: World, path: PathLike, crs: Any, spacing: float = 0.008) -> Path:
+    """Write a world's heights as a GeoTIFF DEM sampled every ``spacing`` m (float32 m,
+    nodata NaN, DEFLATE, tiled), as a survey would give them: the world's cells every
+    ``round(spacing / world.spacing)``-th row and column, a tile of a tiled world at a time.
+
+    Parameters
+    ----------
+    world : HeightField or TiledWorld
+        The world; cell ``[i, j]`` is centred at ``origin + (j, i) * spacing`` (m).
+    path : str or Path
+        The ``.tif`` to write (atomic).
+    crs : rasterio CRS or str
+        The CRS of the world's x, y (the traverse's).
+    spacing : float
+        Cell size of the DEM in m, a whole multiple of the world's (rounded to one).
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
+    import rasterio
+    from rasterio.transform import Affine
+    from rasterio.windows import Window
+
+    ny, nx = world.shape
+    s = world.spacing
+    step = max(1, round(spacing / s))
+    rows = np.arange(0, ny, step)
+    n_cols = (nx - 1) // step + 1
+    cell = step * s
+    north = world.origin[1] + rows[-1] * s + cell / 2
+    transform = Affine(cell, 0.0, world.origin[0] - cell / 2, 0.0, -cell, north)
+    blocks: Iterator[tuple[int, np.ndarray]]
+    if isinstance(world, TiledWorld):
+        tiled = world
+        blocks = ((int(tiled.tile_columns[k]), tiled.tile_heights(k)) for k in range(tiled.n_tiles))
+    else:
+        blocks = ((c, world.heights[:, c : c + 4096 * step]) for c in range(0, nx, 4096 * step))
+    path = Path(path)
+    with (
+        atomic_output(path) as tmp,
+        rasterio.open(
+            tmp,
+            "w",
+            driver="GTiff",
+            width=n_cols,
+            height=len(rows),
+            count=1,
+            dtype="float32",
+            crs=crs,
+            transform=transform,
+            nodata=float("nan"),
+            tiled=True,
+            blockxsize=256,
+            blockysize=256,
+            compress="deflate",
+            bigtiff="if_safer",
+        ) as ds,
+    ):
+        for c0, heights in blocks:
+            first = -c0 % step  # the block's first column on the DEM's lattice
+            part = np.asarray(heights[rows, first::step], dtype=np.float32)[::-1]
+            if part.shape[1]:
+                ds.write(
+                    part[None], window=Window((c0 + first) // step, 0, part.shape[1], len(rows))
+                )
+        ds.set_band_description(1, "elevation")
+        ds.set_band_unit(1, "m")
+        ds.update_tags(1, layer="elevation", long_name="true terrain height (world z)", units="m")
+    log.info("wrote %s (%d x %d heights every %g m)", path, len(rows), n_cols, cell)
     return path
