@@ -260,3 +260,64 @@ def test_the_simulated_dem_is_the_world_every_8_mm(tmp_path: Path) -> None:
     # the west edge is half a DEM cell west of the world's first centre
     assert raster.origin[0] == pytest.approx(-0.4 - 0.004)
     assert raster.origin[1] == pytest.approx(-0.3 + 300 * 0.002 + 0.004)
+
+
+def test_integer_heights_with_scale_and_offset_and_an_ascii_grid(tmp_path: Path) -> None:
+    """Integer heights are read through the band's scale and offset (mm steps here), with
+    their nodata as missing cells; an Esri ASCII grid reads the same heights."""
+    z = _surface((240, 240), seed=5)
+    steps = np.round((z - 0.0) / 0.0001).astype(np.int16)
+    steps[:10, :10] = -32768
+    with rasterio.open(
+        tmp_path / "int.tif",
+        "w",
+        driver="GTiff",
+        width=240,
+        height=240,
+        count=1,
+        dtype="int16",
+        crs="EPSG:32633",
+        transform=_north_up(X0, Y0, B),
+        nodata=-32768,
+    ) as ds:
+        ds.write(steps, 1)
+        ds.scales = (0.0001,)
+        ds.offsets = (100.0,)
+    got = open_height_raster(tmp_path / "int.tif").rows(0, 240)
+    assert np.isnan(got[:10, :10]).all()
+    np.testing.assert_allclose(got[10:], 100.0 + steps[10:] * 0.0001, rtol=0, atol=1e-9)
+    with rasterio.open(
+        tmp_path / "z.asc",
+        "w",
+        driver="AAIGrid",
+        width=240,
+        height=240,
+        count=1,
+        dtype="float32",
+        transform=_north_up(X0, Y0, B),
+    ) as ds:
+        ds.write(z.astype(np.float32), 1)
+    asc = open_height_raster(tmp_path / "z.asc")
+    assert asc.crs.code == "local" and asc.spacing == pytest.approx(B)
+    np.testing.assert_allclose(asc.rows(0, 240), z.astype(np.float32), rtol=0, atol=1e-6)
+
+
+def test_a_header_declaring_more_cells_than_the_file_holds_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "sparse.tif"
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        width=200_000,
+        height=200_000,
+        count=1,
+        dtype="float32",
+        crs="EPSG:32633",
+        transform=_north_up(X0, Y0, B),
+        tiled=True,
+        sparse_ok=True,
+    ):
+        pass
+    assert path.stat().st_size < 16 << 20  # 4e10 cells declared, none written
+    with pytest.raises(FileFormatError, match=r"sparse\.tif \[size\]: declares 200000 x 200000"):
+        open_height_raster(path)
