@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from rough_map import __version__
+from rough_map._cluster import cluster_client
 from rough_map._files import (
     PathLike,
     atomic_output,
@@ -355,35 +356,9 @@ def _named(job: BatchJob) -> tuple[str, dict[str, bytes]]:
 def _on_cluster(
     todo: list[BatchJob], scheduler: str, tls: tuple[str, str, str] | None, bar: Any
 ) -> Iterator[tuple[str, dict[str, bytes]]]:
-    try:
-        from distributed import Client, Security, as_completed
-    except ImportError:
-        raise InputError(
-            "--scheduler needs dask.distributed: pip install 'rough-map[cluster]'"
-        ) from None
-    security = None
-    if tls is not None:
-        for path in tls:
-            if not Path(path).is_file():
-                raise InputError(f"TLS file {path} does not exist")
-        security = Security(
-            tls_ca_file=tls[0], tls_client_cert=tls[1], tls_client_key=tls[2],
-            require_encryption=True,
-        )  # fmt: skip
-    if security is None and not scheduler.startswith("tls://"):
-        log.warning(
-            "%s is not encrypted: keep the scheduler on a private network, or use tls://",
-            scheduler,
-        )
-    try:
-        client = Client(scheduler, timeout="20s", security=security)
-    except (OSError, TimeoutError) as exc:
-        raise InputError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
-    except TypeError as exc:  # a tls:// address without TLS files
-        raise InputError(
-            f"{scheduler} needs TLS: give --tls CA CERT KEY (or dask's "
-            f"distributed.comm.tls configuration): {exc}"
-        ) from None
+    client = cluster_client(scheduler, tls)  # InputError without dask.distributed
+    from distributed import as_completed
+
     with client:
         futures = {
             client.submit(

@@ -36,6 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 from threadpoolctl import threadpool_limits
 
+from rough_map._cluster import cluster_client
 from rough_map.errors import InputError, PatchError
 from rough_map.io.raster import HeightRaster
 from rough_map.iso8608 import CLASSES
@@ -156,6 +157,8 @@ def roughness_raster(
     *,
     n_jobs: int = 1,
     progress: bool = False,
+    scheduler: str | None = None,
+    tls: tuple[str, str, str] | None = None,
 ) -> GridMap:
     """The roughness of every window of ``raster`` (see the module docstring).
 
@@ -170,6 +173,11 @@ def roughness_raster(
         Worker processes (-1: every core); the numbers do not depend on it.
     progress : bool
         A progress bar on stderr.
+    scheduler : str, optional
+        Address of a Dask scheduler to run the strips on (:mod:`rough_map._cluster`; the
+        workers read the raster at the same path); the numbers are those of one process.
+    tls : tuple of 3 str, optional
+        PEM files (CA, certificate, key) of a ``tls://`` scheduler.
 
     Returns
     -------
@@ -208,7 +216,9 @@ def roughness_raster(
     per_strip = max(1, math.ceil(_STRIP_ROWS / step))
     strips = [(b, min(per_strip, n_rows - b)) for b in range(0, n_rows, per_strip)]
     results: Iterator[list[dict[str, NDArray[np.float64]]]]
-    if n_jobs == 1:
+    if scheduler is not None:
+        results = _on_cluster(raster, spec, strips, (size, step, n_cols), scheduler, tls)
+    elif n_jobs == 1:
         results = (_strip(raster, spec, b, k, size, step, n_cols) for b, k in strips)
     else:
         results = Parallel(n_jobs=n_jobs, return_as="generator")(
@@ -238,6 +248,25 @@ def roughness_raster(
     )
     grid.add_layer("valid", units="1", description="1: the window was read", data=valid)
     return grid
+
+
+def _on_cluster(
+    raster: HeightRaster,
+    spec: SurveySpec,
+    strips: list[tuple[int, int]],
+    shape: tuple[int, int, int],
+    scheduler: str,
+    tls: tuple[str, str, str] | None,
+) -> Iterator[list[dict[str, NDArray[np.float64]]]]:
+    """The strips measured on a Dask cluster, in order."""
+    size, step, n_cols = shape
+    with cluster_client(scheduler, tls) as client:
+        futures = [
+            client.submit(_strip, raster, spec, b, k, size, step, n_cols, pure=False)
+            for b, k in strips
+        ]
+        for future in futures:
+            yield future.result()
 
 
 def _strip(

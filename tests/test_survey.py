@@ -321,3 +321,31 @@ def test_a_header_declaring_more_cells_than_the_file_holds_is_refused(tmp_path: 
     assert path.stat().st_size < 16 << 20  # 4e10 cells declared, none written
     with pytest.raises(FileFormatError, match=r"sparse\.tif \[size\]: declares 200000 x 200000"):
         open_height_raster(path)
+
+
+@pytest.mark.slow
+def test_a_survey_on_a_dask_cluster_reads_as_one_process(
+    dem: tuple[Path, np.ndarray], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two worker processes of a local cluster measure the strips (in this process
+    measuring is made to fail) and give the numbers of one process; an unreachable
+    scheduler is one line."""
+    distributed = pytest.importorskip("distributed")
+    import rough_map.survey as survey_mod
+
+    path, _ = dem
+    raster = open_height_raster(path)
+    one = roughness_raster(raster)
+
+    def not_here(*args: object) -> None:
+        raise AssertionError("measured in the client, not on a worker")
+
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+    ) as cluster:
+        monkeypatch.setattr(survey_mod, "_band", not_here)
+        grid = roughness_raster(raster, scheduler=cluster.scheduler_address)
+    for name in one.layers:
+        assert np.array_equal(grid[name], one[name], equal_nan=True), name
+    with pytest.raises(InputError, match="cannot reach the Dask scheduler"):
+        roughness_raster(raster, scheduler="tcp://127.0.0.1:9")

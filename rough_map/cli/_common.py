@@ -408,6 +408,23 @@ def add_jobs_arg(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_cluster_args(parser: argparse.ArgumentParser) -> None:
+    """``--scheduler ADDRESS`` and ``--tls CA CERT KEY``: a Dask cluster to run on
+    (:func:`rough_map._cluster.cluster_client`)."""
+    parser.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="Dask scheduler to run on, e.g. tcp://10.0.0.5:8786 or tls://... "
+        "(keep it on a private network; see the README)",
+    )
+    parser.add_argument(
+        "--tls",
+        nargs=3,
+        metavar=("CA", "CERT", "KEY"),
+        help="PEM files for a tls:// scheduler: the CA, this client's certificate and key",
+    )
+
+
 def add_traverses_arg(
     parser: argparse.ArgumentParser, *, many: bool = False, tables: bool = True
 ) -> None:

@@ -18,6 +18,7 @@ from pathlib import Path
 from rough_map.cli._common import (
     NEAR_FAR,
     add_allow_outside_arg,
+    add_cluster_args,
     add_command,
     add_jobs_arg,
     add_map_args,
@@ -45,18 +46,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_model_arg(p)
     add_map_args(p, settings=False)
     p.add_argument("--no-png", action="store_true", help="skip the PNGs")
-    p.add_argument(
-        "--scheduler",
-        metavar="ADDRESS",
-        help="Dask scheduler to run on, e.g. tcp://10.0.0.5:8786 or tls://... "
-        "(keep it on a private network; see the README)",
-    )
-    p.add_argument(
-        "--tls",
-        nargs=3,
-        metavar=("CA", "CERT", "KEY"),
-        help="PEM files for a tls:// scheduler: the CA, this client's certificate and key",
-    )
+    add_cluster_args(p)
     add_jobs_arg(p)
     add_allow_outside_arg(p)
     p.add_argument("--json", action="store_true", help="what was done, as JSON on stdout")

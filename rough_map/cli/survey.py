@@ -8,7 +8,9 @@ DIR/roughness.tif (a float32 band per quantity, in the raster's CRS, one cell pe
 centred on it, nodata where a window could not be read), DIR/roughness_class.tif (uint8 ISO
 class with a colour table), DIR/roughness.csv (one row per window) and a PNG per layer
 with its legend, as one set: DIR holds either the old outputs or the new ones; your own
-files in DIR are kept. The raster is read a band of windows at a time, in bounded memory.
+files in DIR are kept. The raster is read a band of windows at a time, in bounded memory;
+-j N spreads the bands over N processes, --scheduler over the workers of a Dask cluster
+(which read RASTER at the same path), with the numbers of one process.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import argparse
 from pathlib import Path
 
 from rough_map.cli._common import (
+    add_cluster_args,
     add_command,
     add_jobs_arg,
     emit_json,
@@ -88,6 +91,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--crs", default=None, metavar="EPSG:N", help="CRS of the grid (default: local)"
     )
     p.add_argument("--no-png", action="store_true", help="skip the PNGs")
+    add_cluster_args(p)
     add_jobs_arg(p)
     p.add_argument("--json", action="store_true", help="print a JSON summary")
     p.set_defaults(func=run)
@@ -115,7 +119,14 @@ def run(args: argparse.Namespace) -> int:
         both_directions=args.both_directions,
     )
     size, step = spec.cells(raster.spacing)
-    grid = roughness_raster(raster, spec, n_jobs=args.jobs, progress=args.progress)
+    grid = roughness_raster(
+        raster,
+        spec,
+        n_jobs=args.jobs,
+        progress=args.progress,
+        scheduler=args.scheduler,
+        tls=tuple(args.tls) if args.tls else None,
+    )
     written = write_roughness_raster(grid, args.out, png=not args.no_png, progress=args.progress)
     valid = int(np.count_nonzero(grid["valid"]))
     R = grid["R"][grid["valid"] > 0]
