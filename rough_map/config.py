@@ -176,11 +176,13 @@ class Crs(_Model):
         engineering CRS (:data:`LOCAL_WKT`) and ``local`` with its geodetic origin for the
         transverse Mercator of :meth:`proj_string` (the altitude is not kept).
 
+        The CRS's unit is not looked at: a projected CRS in feet is named by its code too.
+
         Raises
         ------
         InputError
-            A geographic CRS (degrees), one in another unit than the metre, or one without
-            an EPSG code that is not one of rough_map's local frames.
+            A geographic CRS (degrees), or one without an EPSG code that is not one of
+            rough_map's local frames.
         """
         if crs.is_geographic:
             raise InputError(
@@ -189,11 +191,6 @@ class Crs(_Model):
             )
         if not crs.is_projected:  # an engineering CRS: rough_map's local frame
             return cls(code="local")
-        name, unit = crs.linear_units_factor
-        if not math.isclose(float(unit), 1.0):
-            raise InputError(
-                f"a CRS in {name}, not metres; reproject it to a CRS in m (gdalwarp -t_srs)"
-            )
         epsg = crs.to_epsg()
         if epsg is not None:
             return cls(code=f"EPSG:{epsg}")

@@ -30,7 +30,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -42,13 +42,14 @@ from rough_map.io.raster import HeightRaster
 from rough_map.iso8608 import CLASSES
 from rough_map.map.grid import GridMap
 from rough_map.map.grid_geometry import GridGeometry
-from rough_map.patch import DEFAULT_SIZE
+from rough_map.patch import DEFAULT_SIZE, DEFAULT_SPACING
 from rough_map.patch._params import check_bool, check_choice, check_real
 from rough_map.psd import PatchRoughness, patch_roughness_each
 
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "AUTO_CELLS",
     "DIRECTIONS",
     "SurveySpec",
     "roughness_raster",
@@ -75,6 +76,10 @@ _ACROSS = (
     ("w_across", "1", "w of the profiles across the chosen direction"),
     ("anisotropy", "1", "ln(R / R_across)"),
 )
+#: Cells a side of the default window of a raster coarser than the paper's grid.
+AUTO_CELLS = 32
+#: Longest gap in m filled at the paper's grid step (:class:`rough_map.psd.Options`).
+_MAX_GAP = 0.05
 #: Windows measured in one call of the estimator.
 _BATCH = 64
 #: Raster rows a job reads at once (about: whole bands of windows).
@@ -87,30 +92,33 @@ class SurveySpec:
 
     Attributes
     ----------
-    window : float
-        Side of a window in m (default the paper's patch, 0.896 m).
+    window : float, optional
+        Side of a window in m; default the paper's patch, 0.896 m, or :data:`AUTO_CELLS`
+        cells of a coarser raster (decimetre cells of airborne lidar: metres).
     stride : float, optional
         Distance in m between the centres of neighbouring windows; default half a window.
     direction : {"rows", "columns"}
         The profiles run along the raster's rows (west to east) or its columns.
-    gridding : {"point", "cell_mean"}
+    gridding : {"point", "cell_mean"}, optional
         How the raster's heights were sampled (:class:`rough_map.psd.Options`): samples of
-        the surface (a DEM interpolated or a CRG grid) or means of many points per cell.
+        the surface (a DEM interpolated or a CRG grid) or means of many points per cell;
+        default the raster's own (:attr:`rough_map.io.raster.HeightRaster.gridding`).
     both_directions : bool
         Also measure the profiles across, and the anisotropy.
     """
 
-    window: float = DEFAULT_SIZE
+    window: float | None = None
     stride: float | None = None
     direction: str = "rows"
-    gridding: str = "point"
+    gridding: str | None = None
     both_directions: bool = False
 
     def __post_init__(self) -> None:
-        check_real("window", self.window, "m", low=0.0, high=1e4, low_open=True)
+        check_real("window", self.window, "m", low=0.0, high=1e4, low_open=True, none=True)
         check_real("stride", self.stride, "m", low=0.0, high=1e4, low_open=True, none=True)
         check_choice("direction", self.direction, DIRECTIONS)
-        check_choice("gridding", self.gridding, ("point", "cell_mean"))
+        if self.gridding is not None:
+            check_choice("gridding", self.gridding, ("point", "cell_mean"))
         check_bool("both_directions", self.both_directions)
 
     def cells(self, spacing: float) -> tuple[int, int]:
@@ -121,16 +129,23 @@ class SurveySpec:
         InputError
             A window of fewer than 8 cells, or a stride below one cell.
         """
-        size = round(self.window / spacing)
-        step = round((self.stride if self.stride is not None else self.window / 2) / spacing)
+        window = self.window_m(spacing)
+        size = round(window / spacing)
+        step = round((self.stride if self.stride is not None else window / 2) / spacing)
         if size < 8:
             raise InputError(
-                f"a window of {self.window:g} m holds {size} cells of {spacing:g} m; the "
+                f"a window of {window:g} m holds {size} cells of {spacing:g} m; the "
                 "estimator needs at least 8 a side: give a larger --window"
             )
         if step < 1:
             raise InputError(f"stride {self.stride:g} m is less than a cell of {spacing:g} m")
         return size, step
+
+    def window_m(self, spacing: float) -> float:
+        """The window's side in m on cells of ``spacing`` m."""
+        if self.window is not None:
+            return self.window
+        return max(DEFAULT_SIZE, AUTO_CELLS * spacing)
 
 
 def survey_geometry(raster: HeightRaster, spec: SurveySpec) -> GridGeometry:
@@ -144,7 +159,7 @@ def survey_geometry(raster: HeightRaster, spec: SurveySpec) -> GridGeometry:
             f"{raster.path.name}: {raster.shape[0]} x {raster.shape[1]} cells of "
             f"{raster.spacing:g} m hold no window of {size} cells"
         )
-    b = raster.spacing
+    b = raster.cell  # in the CRS's units, as the origin
     res = step * b
     west = raster.origin[0] + (size - step) / 2 * b
     north = raster.origin[1] - (size - step) / 2 * b
@@ -195,6 +210,8 @@ def roughness_raster(
     from tqdm import tqdm
 
     spec = spec or SurveySpec()
+    if spec.gridding is None:
+        spec = replace(spec, gridding=raster.gridding)
     geo = survey_geometry(raster, spec)
     size, step = spec.cells(raster.spacing)
     names = [n for n, *_ in _VALUES] + ([n for n, *_ in _ACROSS] if spec.both_directions else [])
@@ -329,7 +346,10 @@ def _measure(
     stack: NDArray[np.float64], spacing: float, spec: SurveySpec
 ) -> list[PatchRoughness | PatchError]:
     """The estimator's reading of each window, a PatchError where it refuses one."""
-    return patch_roughness_each(stack, spacing, gridding=spec.gridding)
+    gridding = spec.gridding or "point"
+    # gaps are filled up to as many cells as the paper's 5 cm are at its 8 mm
+    max_gap = max(_MAX_GAP, _MAX_GAP * spacing / DEFAULT_SPACING)
+    return patch_roughness_each(stack, spacing, gridding=gridding, max_gap=max_gap)
 
 
 def _values(r: PatchRoughness) -> dict[str, float]:

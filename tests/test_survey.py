@@ -191,14 +191,32 @@ def test_the_command_writes_the_rasters_as_a_set(dem: tuple[Path, np.ndarray], t
     assert (out / "roughness_R.png").stat().st_size > 1000
 
 
+def test_a_raster_in_feet_reads_in_metres_and_writes_in_feet(tmp_path: Path) -> None:
+    """A DEM in US survey feet (cells and heights): the estimator sees metres, the output
+    is in the DEM's CRS and units."""
+    foot = 1200 / 3937
+    z = _surface((336, 336), seed=6)
+    metres = roughness_raster(open_height_raster(_geotiff(tmp_path / "m.tif", z)))
+    ft = open_height_raster(
+        _geotiff(
+            tmp_path / "ft.tif",
+            z / foot,
+            crs="EPSG:2229",
+            transform=_north_up(6_000_000.0, 2_000_000.0, B / foot),
+        )
+    )
+    assert ft.spacing == pytest.approx(B) and ft.unit_m == pytest.approx(foot)
+    feet = roughness_raster(ft)
+    np.testing.assert_allclose(feet["R"], metres["R"], rtol=1e-4)
+    assert feet.geometry.resolution == pytest.approx(56 * B / foot)
+    assert feet.geometry.origin[0] == pytest.approx(6_000_000.0 + 28 * B / foot)
+
+
 def test_hostile_rasters_get_one_line(tmp_path: Path) -> None:
     z = _surface((128, 128), seed=3)
     geo = _geotiff(tmp_path / "deg.tif", z, crs="EPSG:4326", transform=_north_up(10, 45, 1e-7))
     with pytest.raises(FileFormatError, match=r"deg\.tif \[crs\]: in a geographic CRS \(degrees\)"):
         open_height_raster(geo)
-    feet = _geotiff(tmp_path / "ft.tif", z, crs="EPSG:2229")  # California zone 5, US feet
-    with pytest.raises(FileFormatError, match=r"ft\.tif \[crs\]: in a CRS in US survey foot"):
-        open_height_raster(feet)
     rotated = Affine(B, 0.001, X0, 0.0, -B, Y0)
     with pytest.raises(FileFormatError, match=r"rot\.tif \[transform\]: not a north-up raster"):
         open_height_raster(_geotiff(tmp_path / "rot.tif", z, transform=rotated))

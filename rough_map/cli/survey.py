@@ -30,6 +30,9 @@ from rough_map.cli._common import (
 )
 from rough_map.patch import DEFAULT_SIZE
 
+#: rough_map.survey.AUTO_CELLS (not imported, so that building the parser stays light).
+AUTO_CELLS = 32
+
 
 def _xy(text: str) -> tuple[float, float]:
     """Argument type: ``X,Y`` in m."""
@@ -48,9 +51,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--window",
         type=positive_float("m"),
-        default=DEFAULT_SIZE,
         metavar="M",
-        help=f"side of a window in m (default {DEFAULT_SIZE}, the paper's patch)",
+        help=f"side of a window in m (default {DEFAULT_SIZE}, the paper's patch, or "
+        f"{AUTO_CELLS} cells of a coarser raster, such as a gridded airborne cloud)",
     )
     p.add_argument(
         "--stride",
@@ -72,9 +75,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--gridding",
         choices=("point", "cell_mean"),
-        default="point",
-        help="the raster's heights are samples of the surface (point, the default) or means "
-        "of many points per cell (cell_mean: a DEM gridded from a dense cloud)",
+        help="the raster's heights are samples of the surface (point: the default for a "
+        "raster) or means of many points per cell (cell_mean: a DEM gridded from a dense "
+        "cloud; the default for a LAS/LAZ cloud, which survey grids itself)",
     )
     npy = p.add_argument_group("a .npy grid (row 0 is the north edge)")
     npy.add_argument(
@@ -127,20 +130,24 @@ def run(args: argparse.Namespace) -> int:
         scheduler=args.scheduler,
         tls=tuple(args.tls) if args.tls else None,
     )
-    written = write_roughness_raster(grid, args.out, png=not args.no_png, progress=args.progress)
+    written = write_roughness_raster(
+        grid, args.out, png=not args.no_png, progress=args.progress, crs=raster.file_crs
+    )
     valid = int(np.count_nonzero(grid["valid"]))
     R = grid["R"][grid["valid"] > 0]
     summary = {
         "raster": str(args.raster),
-        "crs": raster.crs.code,
+        "crs": raster.crs.code if raster.file_crs is None else raster.file_crs.to_string(),
         "spacing_m": raster.spacing,
         "window_m": size * raster.spacing,
         "stride_m": step * raster.spacing,
         "direction": spec.direction,
+        "gridding": spec.gridding or raster.gridding,
         "windows": int(grid["valid"].size),
         "windows_read": valid,
         "median_R": float(np.median(R)) if R.size else None,
         "files": {k: str(v) for k, v in written.items()},
+        **({"gridded": raster.note} if raster.note else {}),
     }
     if args.json:
         emit_json(summary, indent=2)

@@ -208,6 +208,7 @@ def _write(
     profile: Mapping[str, Any],
     describe: Callable[[Any], None],
     bands: Sequence[str],
+    crs: Any = None,
 ) -> Path:
     """Write ``count`` bands of the map's shape, read a window at a time by ``cells``, to
     ``path`` as COG (or tiled GTiff) with overviews.
@@ -248,7 +249,7 @@ def _write(
                     height=height,
                     count=count,
                     dtype=profile["dtype"],
-                    crs=grid.crs.rasterio(),
+                    crs=grid.crs.rasterio() if crs is None else crs,
                     transform=grid.geometry.transform(),
                     nodata=profile["nodata"],
                     tiled=True,
@@ -284,6 +285,7 @@ def write_values_geotiff(
     *,
     layers: list[str] | tuple[str, ...] | None = None,
     profile: dict[str, Any] | None = None,
+    crs: Any = None,
 ) -> Path:
     """Write the value layers of a map as a float32 COG, one band per layer.
 
@@ -297,6 +299,10 @@ def write_values_geotiff(
         Layers, in band order (default :func:`value_layers`).
     profile : dict, optional
         Overrides of :class:`~rough_map.export.profiles.ValuesProfile`.
+    crs : rasterio CRS, optional
+        The file's CRS where rough_map's :class:`~rough_map.config.Crs` cannot name the
+        map's world frame (a WKT without an EPSG code); the map's geometry is then in that
+        CRS's units. Default the map's.
 
     Returns
     -------
@@ -329,7 +335,7 @@ def write_values_geotiff(
                 tags.update({f"VALUE_{i}": c for i, c in enumerate(info.categories)})
             ds.update_tags(b, **tags)
 
-    return _write(grid, path, len(names), cells, prof, describe, names)
+    return _write(grid, path, len(names), cells, prof, describe, names, crs)
 
 
 def write_class_geotiff(
@@ -338,6 +344,7 @@ def write_class_geotiff(
     layer: str = "class",
     *,
     profile: dict[str, Any] | None = None,
+    crs: Any = None,
 ) -> Path:
     """Write a class layer as a uint8 COG with a colour table (nodata 255 = unknown).
 
@@ -351,6 +358,10 @@ def write_class_geotiff(
         A ``kind="class"`` layer (``class`` or ``far_class``).
     profile : dict, optional
         Overrides of :class:`~rough_map.export.profiles.ClassProfile`.
+    crs : rasterio CRS, optional
+        The file's CRS where rough_map's :class:`~rough_map.config.Crs` cannot name the
+        map's world frame (a WKT without an EPSG code); the map's geometry is then in that
+        CRS's units. Default the map's.
 
     Returns
     -------
@@ -384,7 +395,7 @@ def write_class_geotiff(
         )
         ds.write_colormap(1, class_colours(names))
 
-    written = _write(grid, path, 1, cells, prof, describe, [layer])
+    written = _write(grid, path, 1, cells, prof, describe, [layer], crs)
     colours = [class_colour(n, i) for i, n in enumerate(names)]
     write_category_names(written, names, colours)
     write_qgis_style(written, names, colours)

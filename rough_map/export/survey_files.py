@@ -4,6 +4,7 @@ CSV and PNGs, as one set."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -19,13 +20,21 @@ SURVEY_OUTPUTS = ("roughness.tif", "roughness_class.*", "roughness.csv", "roughn
 
 
 def write_roughness_raster(
-    grid: GridMap, out_dir: PathLike, *, png: bool = True, progress: bool = False
+    grid: GridMap,
+    out_dir: PathLike,
+    *,
+    png: bool = True,
+    progress: bool = False,
+    crs: Any = None,
 ) -> dict[str, Path]:
     """Write a roughness raster as one set in ``out_dir`` (your other files there kept):
     ``roughness.tif`` (a float32 band per value layer, nodata where no window was read),
     ``roughness_class.tif`` (uint8 ISO 8608 class with a colour table, nodata 255),
     ``roughness.csv`` (one row per window read: centre x, y in m and every value) and, with
     ``png``, ``roughness_<layer>.png`` with legends.
+
+    ``crs``: the files' CRS where rough_map's cannot name the raster's
+    (:attr:`rough_map.io.raster.HeightRaster.file_crs`).
 
     Returns
     -------
@@ -36,8 +45,8 @@ def write_roughness_raster(
     values = [n for n in grid.layers if grid.info(n).kind == "value"]
     written: dict[str, Path] = {}
     with output_set(out, owned=SURVEY_OUTPUTS) as stage:
-        write_values_geotiff(grid, stage / "roughness.tif", layers=values)
-        write_class_geotiff(grid, stage / "roughness_class.tif", layer="iso_class")
+        write_values_geotiff(grid, stage / "roughness.tif", layers=values, crs=crs)
+        write_class_geotiff(grid, stage / "roughness_class.tif", layer="iso_class", crs=crs)
         _write_csv(grid, stage / "roughness.csv", values)
         pngs = write_pngs(grid, stage, "roughness", progress=progress) if png else {}
     written.update(values=out / "roughness.tif", csv=out / "roughness.csv")

@@ -55,9 +55,21 @@ class HeightRaster:
     spacing : float
         Side of a cell in m.
     origin : tuple of float
-        World ``(x, y)`` in m of the north-west corner of cell ``[0, 0]``.
+        World ``(x, y)`` of the north-west corner of cell ``[0, 0]``, in the CRS's units.
     crs : Crs
-        The world frame of ``origin``.
+        The world frame of ``origin`` (``local`` where :class:`~rough_map.config.Crs`
+        cannot name it: see ``file_crs``).
+    unit_m : float
+        Metres per unit of the CRS (0.3048 in feet); a GDAL raster's heights are taken in
+        the same unit.
+    file_crs : rasterio CRS, optional
+        The file's own CRS where ``crs`` cannot name it (a WKT without an EPSG code): the
+        outputs are written in it.
+    gridding : {"point", "cell_mean"}
+        How the heights were sampled (:class:`rough_map.psd.Options`): samples of the
+        surface (a raster), or the mean of the points in each cell (a gridded cloud).
+    note : str
+        How a cloud was gridded (its density and the spacing chosen), for the reports.
     """
 
     path: Path
@@ -66,6 +78,15 @@ class HeightRaster:
     origin: tuple[float, float]
     crs: Crs = field(default_factory=lambda: Crs(code="local"))
     _array: np.ndarray | None = field(default=None, repr=False, compare=False)
+    unit_m: float = 1.0
+    file_crs: Any = field(default=None, compare=False)
+    gridding: str = "point"
+    note: str = ""
+
+    @property
+    def cell(self) -> float:
+        """Side of a cell in the CRS's units."""
+        return self.spacing / self.unit_m
 
     def rows(self, first: int, count: int) -> np.ndarray:
         """Heights in m of rows ``first .. first + count - 1`` (float64, NaN: missing).
@@ -91,6 +112,8 @@ class HeightRaster:
                 heights *= scale
             if offset not in (None, 0.0):
                 heights += offset
+            if self.unit_m != 1.0:
+                heights *= self.unit_m
             missing = ~np.isfinite(heights)
             nodata = ds.nodata
             if nodata is not None and math.isfinite(nodata):
@@ -102,9 +125,9 @@ class HeightRaster:
 
     @property
     def bounds(self) -> tuple[float, float, float, float]:
-        """``(xmin, ymin, xmax, ymax)`` in m."""
+        """``(xmin, ymin, xmax, ymax)`` in the CRS's units."""
         x0, y0 = self.origin
-        return x0, y0 - self.shape[0] * self.spacing, x0 + self.shape[1] * self.spacing, y0
+        return x0, y0 - self.shape[0] * self.cell, x0 + self.shape[1] * self.cell, y0
 
 
 def open_height_raster(
@@ -211,19 +234,30 @@ def _describe(path: Path, ds: Any) -> HeightRaster:
         raise FileFormatError(
             path, f"cells of {t.a:g} x {-t.e:g} are not square", field="transform"
         )
-    crs = Crs(code="local")
+    crs, unit, file_crs = Crs(code="local"), 1.0, None
     if ds.crs is not None:
+        if ds.crs.is_geographic:
+            raise FileFormatError(
+                path,
+                "in a geographic CRS (degrees): its cells are not a length; reproject it to a "
+                "projected CRS in m (e.g. gdalwarp -t_srs EPSG:326NN for UTM)",
+                field="crs",
+            )
+        if ds.crs.is_projected:
+            unit = float(ds.crs.linear_units_factor[1])
         try:
             crs = Crs.from_rasterio(ds.crs)
-        except InputError as err:
-            raise FileFormatError(path, f"in {err}", field="crs") from None
+        except InputError:
+            file_crs = ds.crs  # a WKT without an EPSG code: the outputs are written in it
     scale, offset = ds.scales[0], ds.offsets[0]
     if not (math.isfinite(scale or 1.0) and math.isfinite(offset or 0.0)):
         raise FileFormatError(path, f"scale {scale} and offset {offset}", field="scale")
     return HeightRaster(
         path,
         (int(ds.height), int(ds.width)),
-        float(t.a),
+        float(t.a) * unit,
         (float(t.c), float(t.f)),
         crs,
+        unit_m=unit,
+        file_crs=file_crs,
     )
