@@ -367,3 +367,44 @@ def test_a_survey_on_a_dask_cluster_reads_as_one_process(
         assert np.array_equal(grid[name], one[name], equal_nan=True), name
     with pytest.raises(InputError, match="cannot reach the Dask scheduler"):
         roughness_raster(raster, scheduler="tcp://127.0.0.1:9")
+
+
+DATA = Path(__file__).parent / "data"
+
+
+@pytest.mark.parametrize(
+    ("name", "epsg", "spacing"),
+    [("ground_with_crs.las", 32104, 0.21), ("autzen_trim.laz", 2994, 1.8)],
+)
+def test_real_airborne_lidar_gives_rasters_in_its_own_crs(
+    name: str, epsg: int, spacing: float, tmp_path: Path
+) -> None:
+    """Real airborne clouds in feet (one with an EPSG code, one with only a WKT): their
+    ground points are gridded at the spacing their density supports (2 points per cell),
+    the window is 32 such cells, and the rasters lie over the cloud, in its CRS."""
+    import laspy
+
+    out = tmp_path / "out"
+    proc = subprocess.run(
+        [sys.executable, "-m", "rough_map", "survey", str(DATA / name), "--out", str(out)]
+        + ["--json", "--no-png"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads(proc.stdout)
+    assert summary["spacing_m"] == pytest.approx(spacing)
+    assert summary["window_m"] == pytest.approx(32 * spacing)
+    assert summary["gridding"] == "cell_mean" and "ground (class 2) points" in summary["gridded"]
+    assert summary["windows_read"] >= 5
+    header = laspy.read(DATA / name).header
+    with rasterio.open(out / "roughness.tif") as ds:
+        assert ds.crs.to_epsg() == epsg
+        b = ds.bounds
+        assert header.mins[0] <= b.left < b.right <= header.maxs[0]
+        assert header.mins[1] <= b.bottom < b.top <= header.maxs[1]
+        R = ds.read(ds.descriptions.index("R") + 1, masked=True)
+        assert np.all((R.compressed() > 0) & np.isfinite(R.compressed()))
+    with rasterio.open(out / "roughness_class.tif") as ds:
+        assert ds.crs.to_epsg() == epsg

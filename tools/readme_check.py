@@ -237,7 +237,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="readme_check_") as tmp:
         scratch = args.keep or Path(tmp)
         scratch.mkdir(parents=True, exist_ok=True)
-        for name in ("configs", "models"):
+        for name in ("configs", "models", "tests"):
             if not (scratch / name).exists():
                 (scratch / name).symlink_to(ROOT / name)
         ok, new = check_transcripts(lines, args.only, args.update, scratch, log, args.rtol)

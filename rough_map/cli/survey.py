@@ -153,6 +153,8 @@ def run(args: argparse.Namespace) -> int:
         emit_json(summary, indent=2)
         return 0
     print(written["values"])
+    if raster.note:
+        status(args, f"{args.raster.name}: {raster.note}")
     status(
         args,
         f"{valid} of {grid['valid'].size} windows of {size} cells ({size * raster.spacing:.3g} m, "

@@ -8,13 +8,20 @@ Formats
     Any raster GDAL reads, through rasterio (GeoTIFF, COG, Esri ASCII grid, VRT, ...): band
     1 as heights, its nodata as missing cells (NaN), integer or float, with the band's scale
     and offset applied. The raster must be north-up with square cells (no rotation), in a
-    projected CRS in metres with an EPSG code (rough_map's CRS is ``local`` or ``EPSG:<n>``,
-    :class:`~rough_map.config.Crs`); heights are read as metres. A geographic CRS (degrees)
-    or one in feet is refused, naming the reprojection that fixes it (``gdalwarp``). A
-    raster without a CRS is read in a local frame, its cells in m.
+    projected CRS: in metres or feet (cells and heights are then converted to m for the
+    estimator; the outputs stay in the raster's CRS and units), named by an EPSG code or
+    else kept as the file's own (:attr:`HeightRaster.file_crs`). A geographic CRS (degrees)
+    is refused, naming the reprojection that fixes it (``gdalwarp``). A raster without a CRS
+    is read in a local frame, its cells in m.
 
     A NumPy ``.npy`` grid of heights in m, with its ``spacing`` (m) given: row 0 is the
     north edge (as in an image or a GeoTIFF), its north-west corner at ``origin``.
+
+    A LAS/LAZ cloud (:func:`rough_map.io.las.read_las`), with its CRS: its ground points
+    (ASPRS class 2, all points if it has none) are gridded at the finest spacing their
+    density supports, :data:`CLOUD_POINTS_PER_CELL` points per cell on average over the
+    area they cover, rounded up to two digits (airborne lidar at 50 points per m²:
+    0.21 m), as the mean height per cell; :attr:`HeightRaster.note` says what was chosen.
 
 Every problem is a one-line :class:`~rough_map.errors.FileFormatError` naming the file and
 the field, or an :class:`~rough_map.errors.InputError` for a bad argument.
@@ -22,6 +29,7 @@ the field, or an :class:`~rough_map.errors.InputError` for a bad argument.
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -36,10 +44,13 @@ from rough_map._files import PathLike
 from rough_map.config import Crs
 from rough_map.errors import FileFormatError, InputError
 from rough_map.io._check import check_readable
+from rough_map.io.las import read_las
 from rough_map.io.safe_npz import read_npy
 from rough_map.limits import LIMITS
 
-__all__ = ["HeightRaster", "open_height_raster"]
+log = logging.getLogger(__name__)
+
+__all__ = ["CLOUD_POINTS_PER_CELL", "HeightRaster", "open_height_raster"]
 
 
 @dataclass(frozen=True)
@@ -163,6 +174,10 @@ def open_height_raster(
     check_readable(path)
     if path.suffix.lower() == ".npy":
         return _open_npy(path, spacing, origin, crs)
+    if path.suffix.lower() in (".las", ".laz"):
+        if spacing is not None:
+            raise InputError(f"{path.name}: a cloud's spacing is chosen from its density")
+        return _open_cloud(path)
     if spacing is not None:
         raise InputError(f"{path.name}: a GDAL raster gives its own cell size; drop spacing")
     with _rasterio_errors(path), _open(path) as ds:
@@ -187,6 +202,80 @@ def _open_npy(path: Path, spacing: float | None, origin: Any, crs: Any) -> Heigh
         )
     shape = (int(heights.shape[0]), int(heights.shape[1]))
     return HeightRaster(path, shape, float(spacing), (x0, y0), Crs.from_any(crs), heights)
+
+
+#: Points per cell a gridded cloud has on average: the finest spacing its density supports.
+CLOUD_POINTS_PER_CELL = 2.0
+
+
+def _open_cloud(path: Path) -> HeightRaster:
+    """A LAS/LAZ cloud gridded at the finest spacing its density supports: its ground
+    points (ASPRS class 2, when it has any) averaged per cell, NaN where none fell."""
+    from rasterio.crs import CRS
+
+    cloud = read_las(path)
+    ground = cloud.classification == 2
+    use = ground if ground.any() else np.ones(len(cloud.points), dtype=bool)
+    unit = cloud.crs.horizontal_unit_m if cloud.crs is not None else 1.0
+    xy = cloud.crs_coordinates()[use, :2]  # the CRS's units
+    z = cloud.points[use, 2]  # m
+    crs, file_crs = Crs(code="local"), None
+    if cloud.crs is not None and cloud.crs.epsg is not None:
+        crs = Crs(code=f"EPSG:{cloud.crs.epsg}")
+    elif cloud.crs is not None and cloud.crs.wkt:
+        file_crs = CRS.from_wkt(cloud.crs.wkt)
+        if file_crs.is_geographic:
+            raise FileFormatError(path, "in a geographic CRS (degrees)", field="crs")
+    n = len(z)
+    if n < 16:
+        raise FileFormatError(path, f"{n} points: too few to grid", field="points")
+    xy_m = xy * unit
+    span = np.ptp(xy_m, axis=0)
+    if not np.all(span > 0):
+        raise FileFormatError(path, "the points lie on a line: no surface", field="points")
+    # the area the points cover: cells of about 4 points' share of the bounding box
+    side = 2.0 * math.sqrt(float(span[0] * span[1]) / n)
+    occupied = np.unique(np.floor((xy_m - xy_m.min(axis=0)) / side).astype(np.int64), axis=0)
+    area = len(occupied) * side * side
+    density = n / area
+    spacing = _round_up(math.sqrt(CLOUD_POINTS_PER_CELL / density))
+    cell = spacing / unit
+    x0 = math.floor(xy[:, 0].min() / cell) * cell
+    north = math.ceil(xy[:, 1].max() / cell) * cell
+    cols = ((xy[:, 0] - x0) / cell).astype(np.int64)
+    rows = ((north - xy[:, 1]) / cell).astype(np.int64)
+    shape = (int(rows.max()) + 1, int(cols.max()) + 1)
+    if shape[0] * shape[1] > LIMITS.raster_cells:
+        raise FileFormatError(path, f"a grid of {shape[0]} x {shape[1]} cells", field="points")
+    flat = rows * shape[1] + cols
+    counts = np.bincount(flat, minlength=shape[0] * shape[1])
+    sums = np.bincount(flat, weights=z, minlength=shape[0] * shape[1])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        heights = np.where(counts > 0, sums / np.maximum(counts, 1), np.nan).reshape(shape)
+    which = "ground (class 2)" if ground.any() else "all"
+    note = (
+        f"{n} {which} points of {len(cloud.points)}, {density:.3g} per m^2 over {area:.4g} m^2: "
+        f"gridded at {spacing:g} m ({CLOUD_POINTS_PER_CELL:g} points per cell)"
+    )
+    log.info("%s: %s", path.name, note)
+    return HeightRaster(
+        path,
+        shape,
+        spacing,
+        (x0, north),
+        crs,
+        heights,
+        unit_m=unit,
+        file_crs=file_crs,
+        gridding="cell_mean",
+        note=note,
+    )
+
+
+def _round_up(value: float) -> float:
+    """``value`` rounded up to two significant digits."""
+    exp = math.floor(math.log10(value)) - 1
+    return math.ceil(value / 10**exp - 1e-9) * 10**exp
 
 
 @contextmanager
