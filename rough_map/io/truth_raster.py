@@ -31,6 +31,7 @@ import logging
 import re
 import xml.etree.ElementTree as ET
 from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -226,7 +227,6 @@ def write_truth_geotiff(
     Path
         ``path``.
     """
-    import rasterio
     from rasterio.transform import Affine
     from rasterio.windows import Window
 
@@ -248,26 +248,7 @@ def write_truth_geotiff(
         step = 4096  # columns at a time: small temporaries
         blocks = ((c, world.classes[:, c : c + step]) for c in range(0, nx, step))
     path = Path(path)
-    with (
-        atomic_output(path) as tmp,
-        rasterio.open(
-            tmp,
-            "w",
-            driver="GTiff",
-            width=nx,
-            height=ny,
-            count=1,
-            dtype="uint8",
-            crs=crs,
-            transform=transform,
-            nodata=TRUTH_NODATA,
-            tiled=True,
-            blockxsize=256,
-            blockysize=256,
-            compress="deflate",
-            bigtiff="if_safer",
-        ) as ds,
-    ):
+    with _band_file(path, (nx, ny), "uint8", crs, transform, TRUTH_NODATA) as ds:
         for c0, classes in blocks:
             data = np.where(classes >= 0, classes, TRUTH_NODATA).astype(np.uint8)[::-1]
             ds.write(data[None], window=Window(c0, 0, data.shape[1], ny))
@@ -304,7 +285,6 @@ def write_dem_geotiff(world: World, path: PathLike, crs: Any, spacing: float = 0
     Path
         ``path``.
     """
-    import rasterio
     from rasterio.transform import Affine
     from rasterio.windows import Window
 
@@ -323,26 +303,7 @@ def write_dem_geotiff(world: World, path: PathLike, crs: Any, spacing: float = 0
     else:
         blocks = ((c, world.heights[:, c : c + 4096 * step]) for c in range(0, nx, 4096 * step))
     path = Path(path)
-    with (
-        atomic_output(path) as tmp,
-        rasterio.open(
-            tmp,
-            "w",
-            driver="GTiff",
-            width=n_cols,
-            height=len(rows),
-            count=1,
-            dtype="float32",
-            crs=crs,
-            transform=transform,
-            nodata=float("nan"),
-            tiled=True,
-            blockxsize=256,
-            blockysize=256,
-            compress="deflate",
-            bigtiff="if_safer",
-        ) as ds,
-    ):
+    with _band_file(path, (n_cols, len(rows)), "float32", crs, transform, float("nan")) as ds:
         for c0, heights in blocks:
             first = -c0 % step  # the block's first column on the DEM's lattice
             part = np.asarray(heights[rows, first::step], dtype=np.float32)[::-1]
@@ -355,3 +316,34 @@ def write_dem_geotiff(world: World, path: PathLike, crs: Any, spacing: float = 0
         ds.update_tags(1, layer="elevation", long_name="true terrain height (world z)", units="m")
     log.info("wrote %s (%d x %d heights every %g m)", path, len(rows), n_cols, cell)
     return path
+
+
+@contextmanager
+def _band_file(
+    path: Path, size: tuple[int, int], dtype: str, crs: Any, transform: Any, nodata: float
+) -> Iterator[Any]:
+    """A one-band tiled, deflated GeoTIFF of ``size`` (width, height) being written to
+    ``path`` (atomically: in place when the block ends without error)."""
+    import rasterio
+
+    with (
+        atomic_output(path) as tmp,
+        rasterio.open(
+            tmp,
+            "w",
+            driver="GTiff",
+            width=size[0],
+            height=size[1],
+            count=1,
+            dtype=dtype,
+            crs=crs,
+            transform=transform,
+            nodata=nodata,
+            tiled=True,
+            blockxsize=256,
+            blockysize=256,
+            compress="deflate",
+            bigtiff="if_safer",
+        ) as ds,
+    ):
+        yield ds
