@@ -1,8 +1,9 @@
 """``rough-map survey RASTER --out DIR``: the roughness of a whole surface, as rasters.
 
 Slide the paper's patch over a height raster (a DEM or DSM: GeoTIFF, COG, Esri ASCII grid,
-VRT or any raster GDAL reads, in a projected CRS in metres; or a .npy grid with --spacing)
-and measure each window as a traverse's patch is measured: R at 1 rad/m, w, their spread
+VRT or any raster GDAL reads, in a projected CRS; a .npy grid with --spacing; an OpenCRG
+road, along its reference line; a LAS/LAZ cloud, gridded at the spacing its density
+supports) and measure each window as a traverse's patch is measured: R at 1 rad/m, w, their spread
 and standard errors, the rms heights, the power-law check and the ISO 8608 class. Writes
 DIR/roughness.tif (a float32 band per quantity, in the raster's CRS, one cell per window
 centred on it, nodata where a window could not be read), DIR/roughness_class.tif (uint8 ISO

@@ -44,6 +44,7 @@ from rough_map._files import PathLike
 from rough_map.config import Crs
 from rough_map.errors import FileFormatError, InputError
 from rough_map.io._check import check_readable
+from rough_map.io.crg import read_crg
 from rough_map.io.las import read_las
 from rough_map.io.safe_npz import read_npy
 from rough_map.limits import LIMITS
@@ -174,6 +175,10 @@ def open_height_raster(
     check_readable(path)
     if path.suffix.lower() == ".npy":
         return _open_npy(path, spacing, origin, crs)
+    if path.suffix.lower() == ".crg":
+        if spacing is not None:
+            raise InputError(f"{path.name}: a CRG file gives its own grid; drop spacing")
+        return _open_crg(path)
     if path.suffix.lower() in (".las", ".laz"):
         if spacing is not None:
             raise InputError(f"{path.name}: a cloud's spacing is chosen from its density")
@@ -202,6 +207,29 @@ def _open_npy(path: Path, spacing: float | None, origin: Any, crs: Any) -> Heigh
         )
     shape = (int(heights.shape[0]), int(heights.shape[1]))
     return HeightRaster(path, shape, float(spacing), (x0, y0), Crs.from_any(crs), heights)
+
+
+def _open_crg(path: Path) -> HeightRaster:
+    """An OpenCRG surface as a raster in its ``(u, v)`` road coordinates: columns along the
+    reference line, row 0 its left edge, so that profiles along the rows run along ``u``."""
+    surface = read_crg(path)
+    du, dv = surface.du, surface.dv
+    if not (math.isfinite(dv) and math.isclose(du, dv, rel_tol=1e-6)):
+        raise FileFormatError(
+            path,
+            f"cells of {du:g} m along by {dv:g} m across (or long sections unevenly spaced): "
+            "a survey needs square cells",
+            field="LONG_SECTION_V_INCREMENT",
+        )
+    heights = surface.heights()[:, ::-1].T  # rows: v from the left edge; columns: u
+    origin = (float(surface.u[0] - du / 2), float(surface.v[-1] + dv / 2))
+    note = (
+        f"OpenCRG: {len(surface.u)} x {len(surface.v)} heights every {du:g} m; the rasters "
+        "are in its (u, v) road coordinates, profiles along the reference line"
+    )
+    return HeightRaster(
+        path, heights.shape, float(du), origin, Crs(code="local"), heights, note=note
+    )
 
 
 #: Points per cell a gridded cloud has on average: the finest spacing its density supports.
