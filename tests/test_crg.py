@@ -161,3 +161,15 @@ def test_damaged_crg_files_are_one_line_errors(form: str, tmp_path: Path) -> Non
                 read(path)
             except RoughMapError:
                 pass
+
+
+@pytest.mark.parametrize("form", ["KRBI", "KDBI"])
+def test_whole_nan_records_at_the_end_are_a_margin_not_padding(form: str, tmp_path: Path) -> None:
+    """Records all NaN at the end of binary data are the road's margin when the header
+    counts them (REFERENCE_LINE_END_U), though they look like the 80-byte NaN padding."""
+    z = np.random.default_rng(2).normal(0, 0.01, (31, 3))
+    z[:2] = np.nan
+    z[-4:] = np.nan
+    back = read_crg(write_crg(tmp_path / "m.crg", z, 0.1, [-0.1, 0.0, 0.1], form=form))
+    assert back.z.shape == (31, 3)
+    np.testing.assert_allclose(back.z, z, rtol=0, atol=1e-8)

@@ -132,25 +132,27 @@ def read_crg(path: PathLike) -> CrgSurface:
     params, channels, form, u_channel = _parse_header(path, text)
     dtype, width, per_line = FORMATS[form]
     n_ch = len(channels)
-    with path.open("rb") as fh:
-        fh.seek(data_at)
-        raw = fh.read()
-    if dtype:
-        values = _binary(path, raw, dtype, n_ch)
-    else:
-        values = _text(path, raw.decode("latin-1"), width, per_line, n_ch)
-    n_u = values.shape[0]
-    if np.isinf(values).any():
-        row = int(np.argwhere(np.isinf(values))[0, 0])
-        raise FileFormatError(path, f"an infinite value in record {row + 1}", field="data")
     inc = params.get("REFERENCE_LINE_INCREMENT", u_channel[1] if u_channel else math.nan)
     u0 = params.get("REFERENCE_LINE_START_U", u_channel[0] if u_channel else 0.0)
     if not (math.isfinite(inc) and inc > 0):
         raise FileFormatError(
             path, f"REFERENCE_LINE_INCREMENT must be a step > 0 in m, got {inc}", "header"
         )
+    declared = None
     if "REFERENCE_LINE_END_U" in params:
         declared = round((params["REFERENCE_LINE_END_U"] - u0) / inc) + 1
+    with path.open("rb") as fh:
+        fh.seek(data_at)
+        raw = fh.read()
+    if dtype:
+        values = _binary(path, raw, dtype, n_ch, declared)
+    else:
+        values = _text(path, raw.decode("latin-1"), width, per_line, n_ch)
+    n_u = values.shape[0]
+    if np.isinf(values).any():
+        row = int(np.argwhere(np.isinf(values))[0, 0])
+        raise FileFormatError(path, f"an infinite value in record {row + 1}", field="data")
+    if declared is not None:
         if declared != n_u:
             raise FileFormatError(
                 path,
@@ -284,8 +286,12 @@ def _number(path: Path, text: str, name: str) -> float:
     return value
 
 
-def _binary(path: Path, raw: bytes, dtype: str, n_ch: int) -> np.ndarray:
-    """Records of ``n_ch`` big-endian numbers; the NaN padding to a whole 80 B is dropped."""
+def _binary(
+    path: Path, raw: bytes, dtype: str, n_ch: int, declared: int | None = None
+) -> np.ndarray:
+    """Records of ``n_ch`` big-endian numbers; the NaN padding to a whole 80 B is dropped.
+    With the ``declared`` number of records (the header's), records all NaN at the end
+    are data (a margin) when the header counts them; without it, they are padding."""
     item = np.dtype(dtype).itemsize
     if len(raw) % 80:
         raise FileFormatError(
@@ -298,6 +304,13 @@ def _binary(path: Path, raw: bytes, dtype: str, n_ch: int) -> np.ndarray:
         raise FileFormatError(path, f"{count} values: more than a grid holds", field="data")
     values = np.frombuffer(raw, dtype=dtype).astype(np.float64)
     pad = 80 // item
+    if (
+        declared is not None
+        and 2 <= declared
+        and 0 <= count - declared * n_ch < pad
+        and np.isnan(values[declared * n_ch :]).all()
+    ):
+        return values[: declared * n_ch].reshape(declared, n_ch)
     n_u = count // n_ch
     # the padding is fewer than 80 B of NaN: drop whole records of it
     while n_u > 0 and count - (n_u - 1) * n_ch < pad and np.isnan(values[(n_u - 1) * n_ch :]).all():
