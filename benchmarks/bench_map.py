@@ -140,21 +140,9 @@ def stages(folder: Path, sample: int) -> dict[str, float]:
     return out
 
 
-def run_map(folder: Path, out: Path, jobs: int) -> tuple[float, float]:
-    """Wall time (s) of `rough-map map` and the peak of the summed RSS of its processes."""
-    shutil.rmtree(out, ignore_errors=True)
-    cmd = [
-        sys.executable,
-        "-m",
-        "rough_map.cli.main",
-        "map",
-        str(folder),
-        "--out",
-        str(out),
-        "-j",
-        str(jobs),
-        "-q",
-    ]
+def run_with_peak_rss(cmd: list[str], what: str) -> tuple[float, float]:
+    """Wall time (s) of the command ``cmd`` and the peak of the summed RSS (MiB) of its
+    processes, polled every 50 ms; SystemExit naming ``what`` if it fails."""
     t0 = time.perf_counter()
     proc = psutil.Popen(cmd, stdout=subprocess.DEVNULL)
     peak = 0.0
@@ -183,8 +171,26 @@ def run_map(folder: Path, out: Path, jobs: int) -> tuple[float, float]:
     done.set()
     th.join()
     if code != 0:
-        raise SystemExit(f"rough-map map failed with exit code {code}")
+        raise SystemExit(f"{what} failed with exit code {code}")
     return wall, peak
+
+
+def run_map(folder: Path, out: Path, jobs: int) -> tuple[float, float]:
+    """Wall time (s) of `rough-map map` and the peak of the summed RSS of its processes."""
+    shutil.rmtree(out, ignore_errors=True)
+    cmd = [
+        sys.executable,
+        "-m",
+        "rough_map.cli.main",
+        "map",
+        str(folder),
+        "--out",
+        str(out),
+        "-j",
+        str(jobs),
+        "-q",
+    ]
+    return run_with_peak_rss(cmd, "rough-map map")
 
 
 def make_stereo_traverse(work: Path, source: Path, frames: int) -> Path:

@@ -19,16 +19,14 @@ from __future__ import annotations
 import argparse
 import math
 import shutil
-import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
-import psutil
 import rasterio
 from affine import Affine
+from bench_map import run_with_peak_rss
 from rasterio.windows import Window
 from threadpoolctl import threadpool_limits
 
@@ -79,12 +77,13 @@ def floor_rate(dem: Path, spec: SurveySpec, sample: int, repeats: int) -> float:
     band = raster.rows(0, size)
     n = min(sample, (band.shape[1] - size) // step + 1)
     stack = np.stack([band[:, j * step : j * step + size] for j in range(n)])
+    gridding = spec.gridding or raster.gridding
     best = math.inf
     with threadpool_limits(1):
         for _ in range(repeats):
             t = time.perf_counter()
             for k in range(0, n, 64):
-                patch_roughness_each(stack[k : k + 64], raster.spacing, gridding=spec.gridding)
+                patch_roughness_each(stack[k : k + 64], raster.spacing, gridding=gridding)
             best = min(best, time.perf_counter() - t)
     return n / best
 
@@ -94,35 +93,7 @@ def run_survey(dem: Path, out: Path, jobs: int) -> tuple[float, float]:
     shutil.rmtree(out, ignore_errors=True)
     cmd = [sys.executable, "-m", "rough_map", "survey", str(dem), "--out", str(out)]
     cmd += ["--no-png", "-j", str(jobs), "-q"]
-    t0 = time.perf_counter()
-    proc = psutil.Popen(cmd, stdout=subprocess.DEVNULL)
-    peak = 0.0
-    done = threading.Event()
-
-    def watch() -> None:
-        nonlocal peak
-        while not done.is_set():
-            total = 0
-            try:
-                for p in [proc, *proc.children(recursive=True)]:
-                    try:
-                        total += p.memory_info().rss
-                    except psutil.Error:
-                        pass
-            except psutil.Error:
-                pass
-            peak = max(peak, total / 2**20)
-            time.sleep(0.05)
-
-    watcher = threading.Thread(target=watch, daemon=True)
-    watcher.start()
-    code = proc.wait()
-    wall = time.perf_counter() - t0
-    done.set()
-    watcher.join()
-    if code != 0:
-        raise SystemExit(f"rough-map survey failed with exit code {code}")
-    return wall, peak
+    return run_with_peak_rss(cmd, "rough-map survey")
 
 
 def main() -> None:
