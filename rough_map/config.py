@@ -35,6 +35,7 @@ from pydantic import (
     ConfigDict,
     Field,
     ValidationError,
+    ValidationInfo,
     field_serializer,
     field_validator,
     model_validator,
@@ -428,12 +429,25 @@ class FrameSpec(_Model):
     imu: ImuAttitude | None = None
 
     @model_validator(mode="after")
-    def _has_data(self) -> FrameSpec:
+    def _pairs(self) -> FrameSpec:
         if (self.left is None) != (self.right is None):
             raise ValueError("left and right images come together")
-        if self.cloud is None and self.left is None:
-            raise ValueError("a frame needs a cloud or a left/right image pair")
         return self
+
+
+class SurfaceSpec(_Model):
+    """A height raster the frames' patches are cut from, at each frame's pose: a route
+    planned over a survey (:mod:`rough_map.io.route`)."""
+
+    path: RelativePath = Field(
+        description="Height raster: a GDAL raster, .crg, .las/.laz, or .npy with its spacing."
+    )
+    spacing: float | None = Field(
+        None, gt=0, le=1e3, description="Cell size in m of a .npy grid (its own otherwise)."
+    )
+    origin: tuple[float, float] | None = Field(
+        None, description="World (x, y) in m of the north-west corner of a .npy grid."
+    )
 
 
 class TraverseSpec(_Model):
@@ -459,7 +473,26 @@ class TraverseSpec(_Model):
     metadata: dict[str, Any] = Field(
         default_factory=dict, description="Free-form information (source, ground truth, ...)."
     )
+    surface: SurfaceSpec | None = Field(
+        None,
+        description="A height raster the patches are cut from at each frame's pose (a route "
+        "over a survey): frames then need no cloud or images.",
+    )
     frames: list[FrameSpec] = Field(min_length=1)
+
+    @field_validator("frames")
+    @classmethod
+    def _frames_have_data(cls, frames: list[FrameSpec], info: ValidationInfo) -> list[FrameSpec]:
+        if info.data.get("surface") is not None:
+            return frames
+        for i, f in enumerate(frames):
+            if f.cloud is None and f.left is None:
+                raise PydanticCustomError(
+                    "frame_data",
+                    "a frame needs a cloud or a left/right image pair",
+                    {"frame_index": i},
+                )
+        return frames
 
     @field_validator("frames")
     @classmethod

@@ -89,6 +89,8 @@ def schema_error(path: str | Path, err: ValidationError, max_shown: int = 3) -> 
         ctx = item.get("ctx") or {}
         if item["type"] == "time_order":
             loc += [ctx["frame_index"], "t"]
+        elif item["type"] == "frame_data":
+            loc += [ctx["frame_index"]]
         message = clip(item["msg"].removeprefix("Value error, "), 100)
         if item["type"] == "extra_forbidden":
             message = "unknown field (a typo?)"

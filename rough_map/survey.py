@@ -42,8 +42,8 @@ from rough_map.io.raster import HeightRaster
 from rough_map.iso8608 import CLASSES
 from rough_map.map.grid import GridMap
 from rough_map.map.grid_geometry import GridGeometry
-from rough_map.patch import DEFAULT_SIZE, DEFAULT_SPACING
 from rough_map.patch._params import check_bool, check_choice, check_real
+from rough_map.patch.surface import AUTO_CELLS, surface_max_gap, window_size
 from rough_map.psd import PatchRoughness, patch_roughness_each
 
 log = logging.getLogger(__name__)
@@ -76,10 +76,6 @@ _ACROSS = (
     ("w_across", "1", "w of the profiles across the chosen direction"),
     ("anisotropy", "1", "ln(R / R_across)"),
 )
-#: Cells a side of the default window of a raster coarser than the paper's grid.
-AUTO_CELLS = 32
-#: Longest gap in m filled at the paper's grid step (:class:`rough_map.psd.Options`).
-_MAX_GAP = 0.05
 #: Windows measured in one call of the estimator.
 _BATCH = 64
 #: Raster rows a job reads at once (about: whole bands of windows).
@@ -143,9 +139,7 @@ class SurveySpec:
 
     def window_m(self, spacing: float) -> float:
         """The window's side in m on cells of ``spacing`` m."""
-        if self.window is not None:
-            return self.window
-        return max(DEFAULT_SIZE, AUTO_CELLS * spacing)
+        return window_size(spacing, self.window)
 
 
 def survey_geometry(raster: HeightRaster, spec: SurveySpec) -> GridGeometry:
@@ -347,9 +341,7 @@ def _measure(
 ) -> list[PatchRoughness | PatchError]:
     """The estimator's reading of each window, a PatchError where it refuses one."""
     gridding = spec.gridding or "point"
-    # gaps are filled up to as many cells as the paper's 5 cm are at its 8 mm
-    max_gap = max(_MAX_GAP, _MAX_GAP * spacing / DEFAULT_SPACING)
-    return patch_roughness_each(stack, spacing, gridding=gridding, max_gap=max_gap)
+    return patch_roughness_each(stack, spacing, gridding=gridding, max_gap=surface_max_gap(spacing))
 
 
 def _values(r: PatchRoughness) -> dict[str, float]:

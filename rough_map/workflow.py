@@ -33,6 +33,7 @@ from rough_map.evaluation.truth import truth_accuracy
 from rough_map.export import export_map
 from rough_map.export.labels import write_labels
 from rough_map.export.png import write_pngs
+from rough_map.export.road_crg import write_road_crg
 from rough_map.export.vector import write_path_geojson
 from rough_map.features import (
     FeatureTable,
@@ -72,6 +73,7 @@ MAP_OUTPUTS = (
     "labels.csv",
     "labels.csv.json",
     "map_state.npz",
+    "map_road.crg",
 )
 
 #: What the map's roughness layers fuse (:func:`analyse`'s ``roughness``).
@@ -466,13 +468,16 @@ def write_outputs(
     state: bool = True,
     progress: bool = False,
     as_set: bool = True,
+    crg: bool = False,
 ) -> dict[str, Path]:
     """Everything ``rough-map map`` writes for a traverse, into ``out_dir``.
 
     ``map.tif`` and ``map_<class layer>.tif`` (:func:`rough_map.export.export_map`), one
     PNG per layer, the tables (:func:`write_tables`) and, with ``state``,
     ``map_state.npz``: the map's sums, which ``rough-map batch`` adds to other traverses'
-    (:meth:`rough_map.map.tiles.TiledMap.add_saved`).
+    (:meth:`rough_map.map.tiles.TiledMap.add_saved`). With ``crg``, ``map_road.crg``:
+    the elevation layer along the path as an OpenCRG road
+    (:func:`rough_map.export.road_crg.write_road_crg`).
 
     With ``as_set`` (the default) they are written as a set
     (:func:`rough_map._files.output_set`): in a staging folder beside ``out_dir``
@@ -493,9 +498,9 @@ def write_outputs(
     out = Path(out_dir)
     if not as_set:
         out.mkdir(parents=True, exist_ok=True)
-        return _write_outputs(result, out, png, gridmap_bag, state, progress)
+        return _write_outputs(result, out, png, gridmap_bag, state, progress, crg)
     with output_set(out, owned=MAP_OUTPUTS) as stage:
-        written = _write_outputs(result, stage, png, gridmap_bag, state, progress)
+        written = _write_outputs(result, stage, png, gridmap_bag, state, progress, crg)
     return {k: out / p.relative_to(stage) for k, p in written.items()}
 
 
@@ -506,6 +511,7 @@ def _write_outputs(
     gridmap_bag: bool,
     state: bool,
     progress: bool,
+    crg: bool,
 ) -> dict[str, Path]:
     grid = result.map
     # The GeoTIFFs on a second thread beside the PNGs, compressing on that one thread:
@@ -529,6 +535,9 @@ def _write_outputs(
     written.update(write_tables(result, out))
     if state and result.mapper is not None:
         written["state"] = result.mapper.save_state(out / "map_state.npz")
+    if crg:
+        x, y = result.features["x"], result.features["y"]
+        written["crg"] = write_road_crg(grid, x, y, out / "map_road.crg")
     return written
 
 

@@ -266,6 +266,47 @@ def int_at_least(minimum: int, unit: str = "") -> Callable[[str], int]:
     return _checked(int, lambda v: v >= minimum, f"a {_noun(int, unit)} >= {minimum}", "int")
 
 
+def xy_metres(text: str) -> tuple[float, float]:
+    """Argument type: ``X,Y`` in m."""
+    parts = text.split(",")
+    try:
+        x, y = (finite_float("m")(p) for p in parts)
+    except (ValueError, argparse.ArgumentTypeError):
+        raise argparse.ArgumentTypeError(f"expected X,Y in m, got {text!r}") from None
+    return x, y
+
+
+def add_route_args(parser: argparse.ArgumentParser) -> None:
+    """``--route FILE`` (the positional argument is then a height raster) and its options."""
+    g = parser.add_argument_group(
+        "a route over a height raster (the positional argument is then the raster: GeoTIFF, "
+        "any GDAL raster, .crg, .las/.laz or .npy)"
+    )
+    g.add_argument(
+        "--route",
+        type=existing_path,
+        metavar="FILE",
+        help="GeoJSON LineString, or CSV of poses (x, y in m, optional yaw in rad and t in "
+        "s), in the raster's CRS: each frame's patch is cut from the raster at its pose",
+    )
+    g.add_argument(
+        "--every",
+        type=positive_float("m"),
+        default=0.448,
+        metavar="M",
+        help="distance between frames along a LineString (default 0.448 m, half the patch)",
+    )
+    g.add_argument(
+        "--raster-spacing", type=positive_float("m"), metavar="M", help="cell size of a .npy"
+    )
+    g.add_argument(
+        "--raster-origin",
+        type=xy_metres,
+        metavar="X,Y",
+        help="north-west corner of a .npy raster in m (default 0,0)",
+    )
+
+
 def existing_path(text: str) -> Path:
     """Argument type: a file or folder that exists ("no such file or folder" otherwise)."""
     path = Path(text)
@@ -487,6 +528,19 @@ def open_traverses(args: argparse.Namespace, sources: Any) -> list[Any]:
     from rough_map.io.traverse import load_traverse
 
     allowed = tuple(getattr(args, "allow_outside", None) or ())
+    if getattr(args, "route", None) is not None:  # the source is a raster
+        from rough_map.io.route import route_traverse
+
+        return [
+            route_traverse(
+                Path(sources),
+                args.route,
+                every=args.every,
+                spacing=args.raster_spacing,
+                origin=args.raster_origin,
+                allow_outside=allowed,
+            )
+        ]
     out: list[Any] = []
     for source in [sources] if isinstance(sources, str | Path) else sources:
         path = Path(source)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+from pathlib import Path
 
 import numpy as np
 
@@ -15,6 +16,7 @@ from rough_map.features import (
     traverse_features,
     write_features,
 )
+from rough_map.io.traverse import Traverse
 from rough_map.patch import Extraction
 
 
@@ -52,7 +54,7 @@ def run_traverse(args: argparse.Namespace) -> int:
     status(
         args,
         f"wrote {len(feats)} frames ({int((~valid).sum())} invalid) to {args.out}; "
-        f"{step * 1e3:.1f} mm grid{wide}{' (auto)' if extraction.auto_spacing else ''}, "
+        f"{step * 1e3:.1f} mm grid{wide}{_chosen(traverse, extraction)}, "
         f"band {band}",
     )
     summary = {lab or "(unlabelled)": s for lab, s in label_summary(feats).items()}
@@ -73,3 +75,10 @@ def run_traverse(args: argparse.Namespace) -> int:
     rows = [[k, str(s.frames), f"{s.R:.3e}", f"{s.w:.2f}", s.iso_class] for k, s in summary.items()]
     print(table(rows, ["label", "frames", "R m³/rad (geo. mean)", "w (mean)", "ISO"]))
     return 0
+
+
+def _chosen(traverse: Traverse, extraction: Extraction) -> str:
+    """How the grid step was chosen, for the status line."""
+    if traverse.spec.surface is not None:
+        return f" (the cells of {Path(traverse.spec.surface.path).name})"
+    return " (auto)" if extraction.auto_spacing else ""

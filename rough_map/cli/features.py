@@ -21,6 +21,7 @@ from rough_map.cli._common import (
     add_jobs_arg,
     add_patch_args,
     add_psd_args,
+    add_route_args,
     emit_json,
     existing_path,
     finite_float,
@@ -91,6 +92,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     add_psd_args(p)
     add_jobs_arg(p)
+    add_route_args(p)
     add_allow_outside_arg(p)
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     p.add_argument(
@@ -147,7 +149,7 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.frame == "vehicle" and args.at is not None:
         raise InputError("--at reads a world-frame cloud; --frame vehicle says it is not one")
-    if args.source.is_dir() or args.source.name in TRAVERSE_FILES:
+    if args.route is not None or args.source.is_dir() or args.source.name in TRAVERSE_FILES:
         given = [o for o, v in (("--units", args.units != "m"), ("--columns", args.columns),
                                 ("--at", args.at), ("--frame", args.frame)) if v]  # fmt: skip
         if given:

@@ -22,6 +22,7 @@ from rough_map.cli._common import (
     add_jobs_arg,
     add_map_args,
     add_model_arg,
+    add_route_args,
     add_traverses_arg,
     analysis_options,
     chosen_model,
@@ -47,6 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--out", type=Path, required=True, metavar="DIR", help="output folder (created if needed)"
     )
     add_map_args(p)
+    add_route_args(p)
     p.add_argument(
         "--roughness",
         choices=("raw", "smoothed"),
@@ -62,6 +64,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--state",
         action="store_true",
         help="also write DIR/map_state.npz, the fusion sums (what rough-map batch adds up)",
+    )
+    p.add_argument(
+        "--crg",
+        action="store_true",
+        help="also write DIR/map_road.crg: the elevation layer along the path as an OpenCRG "
+        "road surface (KDBI; reference line from the poses, curved where they turn; grid "
+        "steps the map's --resolution; NaN where unmeasured)",
     )
     p.add_argument(
         "--gridmap-bag",
@@ -129,6 +138,7 @@ def _run(args: argparse.Namespace) -> int:
         gridmap_bag=args.gridmap_bag,
         state=args.state,
         progress=args.progress,
+        crg=args.crg,
     )
     if result.mapper is not None:
         result.mapper.close()  # its tiles on disk

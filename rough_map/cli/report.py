@@ -20,6 +20,7 @@ from rough_map.cli._common import (
     add_jobs_arg,
     add_map_args,
     add_model_arg,
+    add_route_args,
     add_traverses_arg,
     analysis_options,
     chosen_model,
@@ -41,6 +42,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     add_model_arg(p)
     add_map_args(p)
+    add_route_args(p)
     add_jobs_arg(p)
     p.set_defaults(func=run)
 

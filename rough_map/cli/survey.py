@@ -25,24 +25,12 @@ from rough_map.cli._common import (
     add_jobs_arg,
     emit_json,
     existing_path,
-    finite_float,
     positive_float,
     status,
+    xy_metres,
 )
 from rough_map.patch import DEFAULT_SIZE
-
-#: rough_map.survey.AUTO_CELLS (not imported, so that building the parser stays light).
-AUTO_CELLS = 32
-
-
-def _xy(text: str) -> tuple[float, float]:
-    """Argument type: ``X,Y`` in m."""
-    parts = text.split(",")
-    try:
-        x, y = (finite_float("m")(p) for p in parts)
-    except (ValueError, argparse.ArgumentTypeError):
-        raise argparse.ArgumentTypeError(f"expected X,Y in m, got {text!r}") from None
-    return x, y
+from rough_map.patch.surface import AUTO_CELLS
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -86,7 +74,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     npy.add_argument(
         "--origin",
-        type=_xy,
+        type=xy_metres,
         default=(0.0, 0.0),
         metavar="X,Y",
         help="world x, y in m of the grid's north-west corner (default 0,0)",

@@ -186,10 +186,11 @@ def measure_frames(frames: Sequence[GriddedFrame]) -> list[FrameResult]:
             results[i] = (row, None, None)
             continue
         opts = _options(grid, ex)
-        key = (ex.patch.spacing, ex.patch.row_step, grid.heights.shape, *opts.values())
+        key = (ex.patch.spacing, ex.patch.row_step, grid.heights.shape, *opts.items())
         groups.setdefault(key, []).append((i, grid))
-    for (spacing, row_step, _, method, subtract, gridding), group in groups.items():
-        opts = {"method": method, "subtract_noise": subtract, "gridding": gridding}
+    for (spacing, row_step, _, *items), group in groups.items():
+        opts = dict(items)
+        subtract = opts["subtract_noise"]
         for start in range(0, len(group), MEASURE_BATCH):
             members = group[start : start + MEASURE_BATCH]
             floors = np.array([g.noise_psd for _, g in members])
@@ -396,12 +397,15 @@ def _as_extraction(extraction: Extraction | PatchSpec | None) -> Extraction:
 def _options(grid: GriddedPatch, ex: Extraction) -> dict[str, Any]:
     """The estimator's options for a gridded patch other than its floor: ``ex``'s method,
     whether the floor is subtracted (when ``ex`` says so and the patch has an estimate of
-    it) and the gridding."""
-    return {
+    it), the gridding and, for a patch cut from a raster, the longest gap filled."""
+    opts = {
         "method": ex.method,
         "subtract_noise": ex.subtract_noise and math.isfinite(grid.noise_psd),
         "gridding": grid.gridding,
     }
+    if grid.max_gap is not None:
+        opts["max_gap"] = grid.max_gap
+    return opts
 
 
 def _fit(grid: GriddedPatch, ex: Extraction, heights: np.ndarray) -> PatchRoughness:

@@ -14,6 +14,7 @@ OpenCV told so): the processes use the cores, and the per-frame matrices are sma
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import os
@@ -34,9 +35,11 @@ from rough_map.errors import FileFormatError, InputError
 from rough_map.features.extract import GriddedFrame, grid_frame, measure_frames
 from rough_map.geometry import pose_matrix, rotation_matrix, transform_columns
 from rough_map.io.pointcloud import read_cloud
+from rough_map.io.raster import HeightRaster, open_height_raster
 from rough_map.io.traverse import Traverse
-from rough_map.patch import Extraction
+from rough_map.patch import Extraction, GriddedPatch
 from rough_map.patch._params import check_int
+from rough_map.patch.surface import cut_patch
 from rough_map.stereo import read_image, stereo_to_cloud
 
 log = logging.getLogger(__name__)
@@ -93,6 +96,9 @@ class FrameJob:
         IMU roll and pitch, rad.
     world_cloud : bool
         The cloud is in the world frame (``cloud_frame``): moved by ``pose`` when read.
+    surface : tuple, optional
+        ``(path, spacing, origin)`` of the height raster the patch is cut from at the
+        pose (a route over a survey: the traverse's ``surface``), instead of points.
     """
 
     index: int
@@ -104,6 +110,7 @@ class FrameJob:
     right: Path | None = None
     imu: tuple[float, float] | None = None
     world_cloud: bool = False
+    surface: tuple[str, float | None, tuple[float, float] | None] | None = None
 
 
 def frame_jobs(traverse: Traverse) -> list[FrameJob]:
@@ -111,6 +118,7 @@ def frame_jobs(traverse: Traverse) -> list[FrameJob]:
     checked to stay inside the traverse folder: :meth:`Traverse.resolve`)."""
     jobs = []
     resolve = traverse.resolver()
+    surface = surface_of(traverse)
     for i, f in enumerate(traverse.frames):
         p = f.pose
         jobs.append(
@@ -124,9 +132,29 @@ def frame_jobs(traverse: Traverse) -> list[FrameJob]:
                 right=None if f.right is None else resolve(f.right, f"frames[{i}].right"),
                 imu=None if f.imu is None else (f.imu.roll, f.imu.pitch),
                 world_cloud=traverse.spec.cloud_frame == "world",
+                surface=surface,
             )
         )
     return jobs
+
+
+def surface_of(
+    traverse: Traverse,
+) -> tuple[str, float | None, tuple[float, float] | None] | None:
+    """The traverse's ``surface`` as a :attr:`FrameJob.surface` (its path resolved and
+    checked), None without one."""
+    spec = traverse.spec.surface
+    if spec is None:
+        return None
+    path = traverse.resolve(spec.path, "surface.path")
+    return str(path), spec.spacing, spec.origin
+
+
+@functools.lru_cache(maxsize=2)
+def open_surface(surface: tuple[str, float | None, tuple[float, float] | None]) -> HeightRaster:
+    """The height raster of a :attr:`FrameJob.surface`, opened once per process."""
+    path, spacing, origin = surface
+    return open_height_raster(path, spacing=spacing, origin=origin or (0.0, 0.0))
 
 
 @dataclass(frozen=True)
@@ -244,6 +272,8 @@ def process_frame(job: FrameJob, settings: FramePass) -> FrameOutput:
     A frame without the points asked for (no stereo pair, an unreadable or missing file)
     gets an invalid row saying why.
     """
+    if job.surface is not None:
+        return _measure([_surface_stage(job, settings)])[0]
     points, reason = read_points(job, settings)
     return process_points(points, job, settings, reason)
 
@@ -296,6 +326,35 @@ def _grid_stage(
     return _Gridded(job, frame, heights)
 
 
+def _surface_stage(job: FrameJob, settings: FramePass) -> _Gridded:
+    """A frame of a route over a raster: its patch cut from the raster at its pose."""
+    assert job.surface is not None
+    ex = settings.extraction
+    x, y, _, _, _, yaw = job.pose
+    row: dict[str, Any] = {"valid": False, "reason": "", "n_points": 0}
+    try:
+        grid, nodes = cut_patch(open_surface(job.surface), (x, y, yaw), ex.patch)
+    except FileFormatError as exc:
+        row["reason"] = f"unreadable: {exc}"
+        return _Gridded(job, GriddedFrame(row, None, ex), None)
+    row.update(
+        n_points=grid.n_points,
+        fill=grid.fill_fraction,
+        point_noise=math.nan,
+        noise_psd=math.nan,
+        level_angle=0.0,
+    )
+    measured: GriddedPatch | None = grid
+    if not settings.features:
+        row["reason"], measured = "not measured", None
+    elif grid.n_points == 0:
+        row["reason"], measured = "the patch is off the surface (no height there)", None
+    heights = None
+    if settings.height_resolution is not None and len(nodes):
+        heights = height_sample(nodes, job, settings.height_resolution, settings.height_points)
+    return _Gridded(job, GriddedFrame(row, measured, ex), heights)
+
+
 def _measure(gridded: Sequence[_Gridded]) -> list[FrameOutput]:
     """The outputs of gridded frames, their patches measured in one batch."""
     results = measure_frames([g.frame for g in gridded])
@@ -303,6 +362,12 @@ def _measure(gridded: Sequence[_Gridded]) -> list[FrameOutput]:
     for g, (row, omega, psd) in zip(gridded, results, strict=True):
         x, y, _, _, _, yaw = g.job.pose
         row.update(frame=g.job.index, t=g.job.t, x=x, y=y, yaw=yaw, label=g.job.label)
+        spec = g.frame.extraction.patch
+        c, s = math.cos(yaw), math.sin(yaw)
+        row.update(
+            patch_x=x + c * spec.ahead - s * spec.lateral,
+            patch_y=y + s * spec.ahead + c * spec.lateral,
+        )
         out.append(FrameOutput(g.job.index, row, omega, psd, g.heights))
     return out
 
@@ -313,6 +378,8 @@ def _uses_stereo(job: FrameJob, settings: FramePass) -> bool:
 
 def read_points(job: FrameJob, settings: FramePass) -> tuple[NDArray[np.float64] | None, str]:
     """The frame's points in the vehicle frame (m), or None and why not."""
+    if job.surface is not None:
+        return None, "the patch is cut from the surface, not read from points"
     use_stereo = _uses_stereo(job, settings)
     try:
         if not use_stereo:
@@ -390,6 +457,9 @@ def process_frames(jobs: Sequence[FrameJob], settings: FramePass) -> list[FrameO
     with one_blas_thread():
         gridded = []
         for job in jobs:
+            if job.surface is not None:
+                gridded.append(_surface_stage(job, settings))
+                continue
             points, reason = read_points(job, settings)
             gridded.append(_grid_stage(points, job, settings, reason))
         return _measure(gridded)

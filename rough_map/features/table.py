@@ -48,8 +48,11 @@ READING_COLUMNS = (
     "rms_ratio",
     "curvature_z",
 )
+#: Where the frame's patch is: its centre in the world frame (m), ``ahead`` and
+#: ``lateral`` of the pose along its heading.
+PLACE_COLUMNS = ("patch_x", "patch_y")
 #: Columns a table written before they existed may lack (read as NaN).
-OPTIONAL_COLUMNS = frozenset(SMOOTH_COLUMNS + SE_COLUMNS + READING_COLUMNS)
+OPTIONAL_COLUMNS = frozenset(SMOOTH_COLUMNS + SE_COLUMNS + READING_COLUMNS + PLACE_COLUMNS)
 
 #: Columns of a features table, in order (spectrum columns follow).
 COLUMNS = (
@@ -78,6 +81,7 @@ COLUMNS = (
     *SE_COLUMNS,
     *SMOOTH_COLUMNS,
     *READING_COLUMNS,
+    *PLACE_COLUMNS,
 )
 TEXT_COLUMNS = frozenset({"iso_class", "reason", "label"})
 BOOL_COLUMNS = frozenset({"valid"})
@@ -120,6 +124,8 @@ COLUMN_UNITS = {
     "omega_centre": "rad/m",
     "rms_ratio": "",
     "curvature_z": "",
+    "patch_x": "m",
+    "patch_y": "m",
 }
 
 

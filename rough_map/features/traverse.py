@@ -29,12 +29,15 @@ from rough_map.features.frames import (
     check_jobs,
     frame_jobs,
     iter_frames,
+    open_surface,
     read_points,
+    surface_of,
 )
 from rough_map.features.table import FeatureTable
 from rough_map.io.model_files import card_extraction
 from rough_map.io.traverse import Traverse, load_traverse
 from rough_map.patch import Extraction, points_in_patch, pooled_rows
+from rough_map.patch.surface import surface_patch_spec
 
 log = logging.getLogger(__name__)
 
@@ -180,6 +183,20 @@ def traverse_pass(
         raise InputError(f"{traverse.name}: stereo needs a 'calibration' in the traverse")
     ex = Extraction.from_dict(extraction)
     settings = FramePass(ex, source, calibration, **options)
+    surface = surface_of(traverse)
+    if surface is not None:  # a route over a raster: the patch on the raster's cells
+        raster = open_surface(surface)
+        patch = surface_patch_spec(raster, ex.patch)
+        log.info(
+            "%s: patches cut from %s, %d x %d cells of %.4g m",
+            traverse.name,
+            raster.path.name,
+            patch.n,
+            patch.n,
+            patch.spacing,
+        )
+        chosen = dataclasses.replace(ex, patch=patch, auto_spacing=False)
+        return dataclasses.replace(settings, extraction=chosen, asked=ex)
     if ex.auto_spacing:
         chosen = resolve_spacing(traverse, settings)
         settings = dataclasses.replace(settings, extraction=chosen, asked=ex)

@@ -92,6 +92,26 @@ class CrgSurface:
             return float(steps[0])
         return math.nan
 
+    def reference_line(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(x, y, phi)`` of the reference line at each ``u`` (m, m, rad): from ``start``,
+        each step of ``du`` runs along the mean of the headings at its two ends (straight
+        at ``start``'s heading without a ``phi`` channel)."""
+        x0, y0, phi0 = self.start
+        n = len(self.u)
+        phi = np.full(n, phi0) if self.phi is None else np.unwrap(np.nan_to_num(self.phi))
+        mid = (phi[1:] + phi[:-1]) / 2
+        du = self.du if n > 1 else 0.0
+        x = x0 + np.concatenate([[0.0], np.cumsum(du * np.cos(mid))])
+        y = y0 + np.concatenate([[0.0], np.cumsum(du * np.sin(mid))])
+        return x, y, phi
+
+    def node_xy(self) -> tuple[np.ndarray, np.ndarray]:
+        """World ``(x, y)`` in m of every grid node, each shape ``(nu, nv)``: the reference
+        line's point at ``u`` moved ``v`` to its left."""
+        x, y, phi = self.reference_line()
+        v = self.v[None, :]
+        return x[:, None] - np.sin(phi)[:, None] * v, y[:, None] + np.cos(phi)[:, None] * v
+
     def heights(self) -> np.ndarray:
         """The road's heights in m on the ``(u, v)`` grid: the long sections plus the
         banking times ``v`` and the slope integrated along ``u``."""
@@ -376,11 +396,13 @@ def write_crg(
     phi: np.ndarray | None = None,
     form: str = "KRBI",
     comment: str = "written by rough_map",
+    start: tuple[float, float, float] | None = None,
 ) -> Path:
     """Write heights ``z[iu, iv]`` (m, NaN: unmeasured) every ``du`` m along a reference
     line from ``u0``, long sections at ``v`` (m, left positive), as an OpenCRG file in
-    ``form`` (:data:`FORMATS`); ``phi`` (rad, one per record) makes the line curved.
-    Written atomically."""
+    ``form`` (:data:`FORMATS`); ``phi`` (rad, one per record) makes the line curved;
+    ``start`` is the line's ``(x, y, phi)`` in the world (m, m, rad). Written
+    atomically."""
     z = np.asarray(z, dtype=np.float64)
     v = np.asarray(v, dtype=np.float64)
     if form not in FORMATS:
@@ -396,6 +418,15 @@ def write_crg(
         f"REFERENCE_LINE_START_U   = {float(u0)!r}",
         f"REFERENCE_LINE_END_U     = {float(u0 + (n_u - 1) * du)!r}",
         f"REFERENCE_LINE_INCREMENT = {float(du)!r}",
+        *(
+            []
+            if start is None
+            else [
+                f"REFERENCE_LINE_START_X   = {float(start[0])!r}",
+                f"REFERENCE_LINE_START_Y   = {float(start[1])!r}",
+                f"REFERENCE_LINE_START_PHI = {float(start[2])!r}",
+            ]
+        ),
         "$",
         "$KD_Definition",
         f"#:{form}",

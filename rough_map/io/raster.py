@@ -110,13 +110,33 @@ class HeightRaster:
         """
         if not (0 <= first and count >= 0 and first + count <= self.shape[0]):
             raise InputError(f"rows {first}..{first + count} outside the {self.shape[0]} rows")
+        return self._read(first, 0, count, self.shape[1])
+
+    def window(self, row: int, col: int, height: int, width: int) -> np.ndarray:
+        """Heights in m of the ``height`` x ``width`` cells from cell ``[row, col]`` on
+        (float64), NaN where missing or off the raster (the window may overhang it).
+
+        Raises
+        ------
+        FileFormatError
+            The file cannot give those cells (truncated or damaged).
+        """
+        out = np.full((max(height, 0), max(width, 0)), np.nan)
+        r0, c0 = max(row, 0), max(col, 0)
+        r1, c1 = min(row + height, self.shape[0]), min(col + width, self.shape[1])
+        if r1 > r0 and c1 > c0:
+            out[r0 - row : r1 - row, c0 - col : c1 - col] = self._read(r0, c0, r1 - r0, c1 - c0)
+        return out
+
+    def _read(self, row: int, col: int, height: int, width: int) -> np.ndarray:
+        """The cells of a window inside the raster, in m (NaN: missing)."""
         if self._array is not None:
-            return np.array(self._array[first : first + count], dtype=np.float64)
+            return np.array(self._array[row : row + height, col : col + width], dtype=np.float64)
         with _rasterio_errors(self.path), _open(self.path) as ds:
             from rasterio.enums import MaskFlags
             from rasterio.windows import Window
 
-            window = Window(0, first, self.shape[1], count)
+            window = Window(col, row, width, height)
             raw = ds.read(1, window=window)
             heights = raw.astype(np.float64)
             scale, offset = ds.scales[0], ds.offsets[0]

@@ -243,6 +243,8 @@ class Traverse:
         missing: list[tuple[str, str]] = []
         if self.spec.height_field is not None:
             missing += self._missing("height_field", self.spec.height_field)
+        if self.spec.surface is not None:
+            missing += self._missing("surface.path", self.spec.surface.path)
         for i, f in enumerate(self.spec.frames):
             for key in ("cloud", "left", "right"):
                 relative = getattr(f, key)

@@ -63,6 +63,9 @@ class GriddedPatch:
         to cell, a white floor that ``noise_psd`` estimates and the estimator subtracts.
         ``"point"`` (:func:`grid_lattice`): each cell holds the one point on its centre, a
         sample of the surface at the node.
+    max_gap : float, optional
+        Longest gap in m the estimator fills in a profile (None: its default); a patch cut
+        from a raster takes the survey's (:func:`rough_map.patch.surface.surface_max_gap`).
     """
 
     heights: np.ndarray
@@ -73,6 +76,7 @@ class GriddedPatch:
     noise_psd: float
     level_angle: float = 0.0
     gridding: str = "cell_mean"
+    max_gap: float | None = None
 
     @property
     def fill_fraction(self) -> float:
