@@ -408,3 +408,36 @@ def test_real_airborne_lidar_gives_rasters_in_its_own_crs(
         assert np.all((R.compressed() > 0) & np.isfinite(R.compressed()))
     with rasterio.open(out / "roughness_class.tif") as ds:
         assert ds.crs.to_epsg() == epsg
+
+
+def test_a_world_frame_cloud_is_gridded_by_its_density(tmp_path: Path) -> None:
+    """Any cloud in a world frame (here .npy of N x 3 points and the same as .ply), in the
+    CRS given: gridded at sqrt(2 / density) rounded up, read on that grid, the same numbers
+    from either file; a .npy with a spacing is still a grid of heights."""
+    from rough_map.io.pointcloud import write_cloud
+
+    rng = np.random.default_rng(4)
+    n = 120_000  # over 12 m x 6 m: 1,667 points per m^2, 2 per 3.5 cm cell
+    x, y = X0 + rng.uniform(0, 12, n), Y0 - rng.uniform(0, 6, n)
+    fine = synthesize_surface((600, 1200), 0.01, PHI0, W, seed=3)
+    rows, cols = ((Y0 - y) / 0.01).astype(int), ((x - X0) / 0.01).astype(int)
+    z = fine[rows.clip(0, 599), cols.clip(0, 1199)]
+    points = np.column_stack([x, y, z])
+    np.save(tmp_path / "cloud.npy", points)
+    write_cloud(tmp_path / "cloud.ply", points)
+    readings = []
+    for name in ("cloud.npy", "cloud.ply"):
+        raster = open_height_raster(tmp_path / name, crs="EPSG:32633")
+        assert raster.crs.code == "EPSG:32633" and raster.gridding == "cell_mean"
+        assert raster.spacing == pytest.approx(0.035)  # sqrt(2 / 1667) = 0.0346 m
+        assert "gridded at 0.035 m" in raster.note
+        readings.append(roughness_raster(raster)["R"])
+    assert np.array_equal(readings[0], readings[1], equal_nan=True)
+    assert np.isfinite(readings[0]).mean() > 0.8
+    grid = tmp_path / "three_columns.npy"
+    np.save(grid, np.zeros((64, 3)))
+    assert open_height_raster(grid, spacing=0.01).shape == (64, 3)
+    bad = tmp_path / "bad.csv"
+    bad.write_text("x,y,z\n1,2,3\n4,5,nan\n")
+    with pytest.raises(FileFormatError, match=r"bad\.csv"):
+        open_height_raster(bad)

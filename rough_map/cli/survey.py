@@ -2,16 +2,18 @@
 
 Slide the paper's patch over a height raster (a DEM or DSM: GeoTIFF, COG, Esri ASCII grid,
 VRT or any raster GDAL reads, in a projected CRS; a .npy grid with --spacing; an OpenCRG
-road, along its reference line; a LAS/LAZ cloud, gridded at the spacing its density
-supports) and measure each window as a traverse's patch is measured: R at 1 rad/m, w, their spread
-and standard errors, the rms heights, the power-law check and the ISO 8608 class. Writes
-DIR/roughness.tif (a float32 band per quantity, in the raster's CRS, one cell per window
-centred on it, nodata where a window could not be read), DIR/roughness_class.tif (uint8 ISO
-class with a colour table), DIR/roughness.csv (one row per window) and a PNG per layer
-with its legend, as one set: DIR holds either the old outputs or the new ones; your own
-files in DIR are kept. The raster is read a band of windows at a time, in bounded memory;
--j N spreads the bands over N processes, --scheduler over the workers of a Dask cluster
-(which read RASTER at the same path), with the numbers of one process.
+road, along its reference line; a cloud in a world frame, gridded at the spacing its density
+supports: LAS/LAZ in its own CRS, or .ply, .pcd, .csv/.xyz/.txt, KITTI .bin or a .npy of N x
+3 points in metres, in --crs) and measure each window as a traverse's patch is measured: R
+at 1 rad/m, w, their spread and standard errors, the rms heights, the power-law check and
+the ISO 8608 class. Writes DIR/roughness.tif (a float32 band per quantity, in the raster's
+CRS, one cell per window centred on it, nodata where a window could not be read),
+DIR/roughness_class.tif (uint8 ISO class with a colour table), DIR/roughness.csv (one row
+per window) and a PNG per layer with its legend, as one set: DIR holds either the old
+outputs or the new ones; your own files in DIR are kept. The raster is read a band of
+windows at a time, in bounded memory; -j N spreads the bands over N processes, --scheduler
+over the workers of a Dask cluster (which read RASTER at the same path), with the numbers of
+one process.
 """
 
 from __future__ import annotations
@@ -35,7 +37,11 @@ from rough_map.patch.surface import AUTO_CELLS
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = add_command(sub, "survey", "roughness rasters of a whole surface (DEM, DSM, .npy)", __doc__)
-    p.add_argument("raster", type=existing_path, help="height raster (GeoTIFF, any GDAL, .npy)")
+    p.add_argument(
+        "raster",
+        type=existing_path,
+        help="height raster (GeoTIFF, any GDAL, .npy, .crg) or world-frame cloud",
+    )
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
     p.add_argument(
         "--window",
@@ -80,7 +86,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="world x, y in m of the grid's north-west corner (default 0,0)",
     )
     npy.add_argument(
-        "--crs", default=None, metavar="EPSG:N", help="CRS of the grid (default: local)"
+        "--crs",
+        default=None,
+        metavar="EPSG:N",
+        help="CRS of a .npy grid or of a cloud without one (default: local)",
     )
     p.add_argument("--no-png", action="store_true", help="skip the PNGs")
     add_cluster_args(p)

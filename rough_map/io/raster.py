@@ -17,11 +17,14 @@ Formats
     A NumPy ``.npy`` grid of heights in m, with its ``spacing`` (m) given: row 0 is the
     north edge (as in an image or a GeoTIFF), its north-west corner at ``origin``.
 
-    A LAS/LAZ cloud (:func:`rough_map.io.las.read_las`), with its CRS: its ground points
-    (ASPRS class 2, all points if it has none) are gridded at the finest spacing their
-    density supports, :data:`CLOUD_POINTS_PER_CELL` points per cell on average over the
-    area they cover, rounded up to two digits (airborne lidar at 50 points per m²:
-    0.21 m), as the mean height per cell; :attr:`HeightRaster.note` says what was chosen.
+    A cloud in a world frame: LAS/LAZ (:func:`rough_map.io.las.read_las`) with its CRS,
+    its ground points (ASPRS class 2, all points if it has none); or any other cloud
+    :func:`rough_map.io.pointcloud.read_cloud` reads (.ply, .pcd, .csv/.xyz/.txt, KITTI
+    .bin, a ``.npy`` of N x 3 points given without a spacing), every point, in metres, in
+    the CRS given. The points are gridded at the finest spacing their density supports,
+    :data:`CLOUD_POINTS_PER_CELL` points per cell on average over the area they cover,
+    rounded up to two digits (airborne lidar at 50 points per m²: 0.21 m), as the mean
+    height per cell; :attr:`HeightRaster.note` says what was chosen.
 
 Every problem is a one-line :class:`~rough_map.errors.FileFormatError` naming the file and
 the field, or an :class:`~rough_map.errors.InputError` for a bad argument.
@@ -46,6 +49,7 @@ from rough_map.errors import FileFormatError, InputError
 from rough_map.io._check import check_readable
 from rough_map.io.crg import read_crg
 from rough_map.io.las import read_las
+from rough_map.io.pointcloud import read_cloud
 from rough_map.io.safe_npz import read_npy
 from rough_map.limits import LIMITS
 
@@ -193,16 +197,19 @@ def open_height_raster(
     """
     path = Path(path)
     check_readable(path)
-    if path.suffix.lower() == ".npy":
+    suffix = path.suffix.lower()
+    if suffix == ".npy" and spacing is None and _is_cloud_npy(path):
+        return _open_cloud(path, crs)
+    if suffix == ".npy":
         return _open_npy(path, spacing, origin, crs)
     if path.suffix.lower() == ".crg":
         if spacing is not None:
             raise InputError(f"{path.name}: a CRG file gives its own grid; drop spacing")
         return _open_crg(path)
-    if path.suffix.lower() in (".las", ".laz"):
+    if suffix in CLOUD_SUFFIXES:
         if spacing is not None:
             raise InputError(f"{path.name}: a cloud's spacing is chosen from its density")
-        return _open_cloud(path)
+        return _open_cloud(path, crs)
     if spacing is not None:
         raise InputError(f"{path.name}: a GDAL raster gives its own cell size; drop spacing")
     with _rasterio_errors(path), _open(path) as ds:
@@ -254,26 +261,43 @@ def _open_crg(path: Path) -> HeightRaster:
 
 #: Points per cell a gridded cloud has on average: the finest spacing its density supports.
 CLOUD_POINTS_PER_CELL = 2.0
+#: Clouds :func:`open_height_raster` grids (and a ``.npy`` of N x 3 points without a spacing).
+CLOUD_SUFFIXES = (".las", ".laz", ".ply", ".pcd", ".csv", ".xyz", ".txt", ".bin")
 
 
-def _open_cloud(path: Path) -> HeightRaster:
-    """A LAS/LAZ cloud gridded at the finest spacing its density supports: its ground
-    points (ASPRS class 2, when it has any) averaged per cell, NaN where none fell."""
+def _is_cloud_npy(path: Path) -> bool:
+    """A ``.npy`` of N x 3 numbers is a cloud (x, y, z), not a grid of heights."""
+    array = read_npy(path)
+    return array.ndim == 2 and array.shape[1] == 3 and array.shape[0] > 3
+
+
+def _open_cloud(path: Path, crs_given: Any = None) -> HeightRaster:
+    """A cloud in a world frame gridded at the finest spacing its density supports: a
+    LAS/LAZ file's ground points (ASPRS class 2, when it has any) in its own CRS, or every
+    point of another cloud (metres, in ``crs_given``, default local), averaged per cell,
+    NaN where none fell."""
     from rasterio.crs import CRS
 
-    cloud = read_las(path)
-    ground = cloud.classification == 2
-    use = ground if ground.any() else np.ones(len(cloud.points), dtype=bool)
-    unit = cloud.crs.horizontal_unit_m if cloud.crs is not None else 1.0
-    xy = cloud.crs_coordinates()[use, :2]  # the CRS's units
-    z = cloud.points[use, 2]  # m
     crs, file_crs = Crs(code="local"), None
-    if cloud.crs is not None and cloud.crs.epsg is not None:
-        crs = Crs(code=f"EPSG:{cloud.crs.epsg}")
-    elif cloud.crs is not None and cloud.crs.wkt:
-        file_crs = CRS.from_wkt(cloud.crs.wkt)
-        if file_crs.is_geographic:
-            raise FileFormatError(path, "in a geographic CRS (degrees)", field="crs")
+    if path.suffix.lower() in (".las", ".laz"):
+        cloud = read_las(path)
+        ground = cloud.classification == 2
+        use = ground if ground.any() else np.ones(len(cloud.points), dtype=bool)
+        unit = cloud.crs.horizontal_unit_m if cloud.crs is not None else 1.0
+        xy = cloud.crs_coordinates()[use, :2]  # the CRS's units
+        z = cloud.points[use, 2]  # m
+        which = "ground (class 2)" if ground.any() else "all"
+        total = len(cloud.points)
+        if cloud.crs is not None and cloud.crs.epsg is not None:
+            crs = Crs(code=f"EPSG:{cloud.crs.epsg}")
+        elif cloud.crs is not None and cloud.crs.wkt:
+            file_crs = CRS.from_wkt(cloud.crs.wkt)
+            if file_crs.is_geographic:
+                raise FileFormatError(path, "in a geographic CRS (degrees)", field="crs")
+    else:
+        points = read_cloud(path)
+        xy, z, unit, which, total = points[:, :2], points[:, 2], 1.0, "all", len(points)
+        crs = Crs.from_any(crs_given)
     n = len(z)
     if n < 16:
         raise FileFormatError(path, f"{n} points: too few to grid", field="points")
@@ -300,9 +324,8 @@ def _open_cloud(path: Path) -> HeightRaster:
     sums = np.bincount(flat, weights=z, minlength=shape[0] * shape[1])
     with np.errstate(invalid="ignore", divide="ignore"):
         heights = np.where(counts > 0, sums / np.maximum(counts, 1), np.nan).reshape(shape)
-    which = "ground (class 2)" if ground.any() else "all"
     note = (
-        f"{n} {which} points of {len(cloud.points)}, {density:.3g} per m^2 over {area:.4g} m^2: "
+        f"{n} {which} points of {total}, {density:.3g} per m^2 over {area:.4g} m^2: "
         f"gridded at {spacing:g} m ({CLOUD_POINTS_PER_CELL:g} points per cell)"
     )
     log.info("%s: %s", path.name, note)
