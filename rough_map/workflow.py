@@ -31,6 +31,7 @@ from rough_map.errors import InputError, ModelError
 from rough_map.evaluation.near_far import far_field_accuracy
 from rough_map.evaluation.truth import truth_accuracy
 from rough_map.export import export_map
+from rough_map.export.costmap import CostmapSettings, cost_layer, write_costmap
 from rough_map.export.labels import write_labels
 from rough_map.export.png import write_pngs
 from rough_map.export.road_crg import write_road_crg
@@ -44,6 +45,7 @@ from rough_map.features import (
     iter_frames,
     write_features,
 )
+from rough_map.features.driving import speed_advice, speed_table
 from rough_map.features.traverse import start_frame_pass, traverse_pass
 from rough_map.filter import smooth_table
 from rough_map.io.traverse import Traverse
@@ -54,6 +56,7 @@ from rough_map.map.grid_geometry import check_map_memory
 from rough_map.map.tiles import is_accumulator
 from rough_map.online import OnlineMapper
 from rough_map.patch import Extraction, options_of
+from rough_map.vehicle import Vehicle
 
 log = logging.getLogger(__name__)
 
@@ -74,6 +77,8 @@ MAP_OUTPUTS = (
     "labels.csv.json",
     "map_state.npz",
     "map_road.crg",
+    "map_costmap.pgm",
+    "map_costmap.yaml",
 )
 
 #: What the map's roughness layers fuse (:func:`analyse`'s ``roughness``).
@@ -119,6 +124,8 @@ class TraverseAnalysis:
         Area covered (m²) and far-field accuracy (when the world truth is known).
     mapper : OnlineMapper or None
         The mapper that fused the map, holding its sums (``map_state.npz``).
+    vehicle : Vehicle or None
+        The vehicle of the speed advice (``v_max``), if any.
     """
 
     traverse: Traverse
@@ -130,6 +137,7 @@ class TraverseAnalysis:
     far: list[n2f.FarPrediction] = field(default_factory=list)
     far_report: dict[str, Any] = field(default_factory=dict)
     mapper: OnlineMapper | None = field(default=None, repr=False)
+    vehicle: Vehicle | None = None
     _truth: World | None = field(default=None, init=False, repr=False)
     _truth_read: bool = field(default=False, init=False, repr=False)
 
@@ -174,6 +182,12 @@ class AnalysisOptions:
         Worker processes for the frames (-1: every core); the result is the same for any.
     progress : bool
         Progress bars on stderr.
+    vehicle : Vehicle, optional
+        A vehicle (:func:`rough_map.vehicle.load_vehicle`): the features get its speed
+        advice (:func:`rough_map.features.driving.speed_advice`) and the map a ``v_max``
+        layer (m/s) from each cell's fused R and w.
+    speed : float, optional
+        With ``vehicle``: the speed in m/s of the features' response columns.
     """
 
     resolution: float = 0.1
@@ -182,6 +196,8 @@ class AnalysisOptions:
     roughness: str = "raw"
     n_jobs: int = 1
     progress: bool = False
+    vehicle: Vehicle | None = None
+    speed: float | None = None
 
     def __post_init__(self) -> None:
         if self.roughness not in ROUGHNESS_SOURCES:
@@ -270,6 +286,8 @@ def analyse(
     # the frames the class filter leaves out as isolated defects stay out of the smoothing
     defect = None if prediction is None or prediction.mode == "forward" else prediction.defect
     features = smooth_table(features, defect=defect)
+    if opt.vehicle is not None:
+        features = speed_advice(features, opt.vehicle, opt.speed)
     grid = mapper.finish(
         late=True,
         proba=prediction.filtered_proba if prediction is not None else None,
@@ -277,9 +295,17 @@ def analyse(
         novelty=prediction.novelty if prediction is not None else None,
     )
     grid.attrs["traverse"] = traverse.name
+    if opt.vehicle is not None:
+        grid.add_layer(
+            "v_max",
+            units="m/s",
+            description=f"highest speed keeping the {opt.vehicle.name}'s limits",
+            data=speed_table(features, opt.vehicle).v_max(grid["R"], grid["w"]),
+        )
     log_fused(len(features), np.asarray(features.valid, dtype=bool), grid, resolution)
     result = TraverseAnalysis(traverse, features, prediction, grid, model, extraction)
     result.mapper = mapper
+    result.vehicle = opt.vehicle
     has_images = any(f.left is not None for f in traverse.frames)
     near_far = opt.near_far
     run_far = near_far is True or (near_far == "auto" and has_images and prediction is not None)
@@ -469,6 +495,7 @@ def write_outputs(
     progress: bool = False,
     as_set: bool = True,
     crg: bool = False,
+    costmap: CostmapSettings | None = None,
 ) -> dict[str, Path]:
     """Everything ``rough-map map`` writes for a traverse, into ``out_dir``.
 
@@ -477,7 +504,10 @@ def write_outputs(
     ``map_state.npz``: the map's sums, which ``rough-map batch`` adds to other traverses'
     (:meth:`rough_map.map.tiles.TiledMap.add_saved`). With ``crg``, ``map_road.crg``:
     the elevation layer along the path as an OpenCRG road
-    (:func:`rough_map.export.road_crg.write_road_crg`).
+    (:func:`rough_map.export.road_crg.write_road_crg`). With a vehicle
+    (:attr:`TraverseAnalysis.vehicle`), ``map_costmap.pgm`` and ``.yaml``: the speed advice
+    as a map_server costmap (:func:`rough_map.export.costmap.write_costmap`, ``costmap``
+    its settings), also in the grid_map bag as a ``nav_msgs/OccupancyGrid``.
 
     With ``as_set`` (the default) they are written as a set
     (:func:`rough_map._files.output_set`): in a staging folder beside ``out_dir``
@@ -498,9 +528,9 @@ def write_outputs(
     out = Path(out_dir)
     if not as_set:
         out.mkdir(parents=True, exist_ok=True)
-        return _write_outputs(result, out, png, gridmap_bag, state, progress, crg)
+        return _write_outputs(result, out, png, gridmap_bag, state, progress, crg, costmap)
     with output_set(out, owned=MAP_OUTPUTS) as stage:
-        written = _write_outputs(result, stage, png, gridmap_bag, state, progress, crg)
+        written = _write_outputs(result, stage, png, gridmap_bag, state, progress, crg, costmap)
     return {k: out / p.relative_to(stage) for k, p in written.items()}
 
 
@@ -512,8 +542,11 @@ def _write_outputs(
     state: bool,
     progress: bool,
     crg: bool,
+    costmap: CostmapSettings | None,
 ) -> dict[str, Path]:
     grid = result.map
+    top = result.vehicle.limits.top_speed if result.vehicle is not None else None
+    cost = None if top is None else cost_layer(grid, top, costmap)
     # The GeoTIFFs on a second thread beside the PNGs, compressing on that one thread:
     # for an hour of driving, 1.8 s for both against 2.2 s one after the other (and 2.0 s
     # with two GDAL threads, three busy threads then sharing the two cores).
@@ -528,6 +561,7 @@ def _write_outputs(
             threads=1 if png else 2,
             # the bag replays the map as it grew, one message per frame fused
             gridmap_updates=result.mapper.replay() if gridmap_bag and result.mapper else (),
+            occupancy=cost,
         )
         pngs = write_pngs(grid, out, "map", progress=progress) if png else {}
         written = files.result()
@@ -535,6 +569,8 @@ def _write_outputs(
     written.update(write_tables(result, out))
     if state and result.mapper is not None:
         written["state"] = result.mapper.save_state(out / "map_state.npz")
+    if top is not None:
+        written.update(write_costmap(grid, out, top, settings=costmap))
     if crg:
         x, y = result.features["x"], result.features["y"]
         written["crg"] = write_road_crg(grid, x, y, out / "map_road.crg")

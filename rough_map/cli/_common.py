@@ -25,6 +25,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, NoReturn
 
+from rough_map.errors import InputError
 from rough_map.patch import DEFAULT_AHEAD, DEFAULT_SIZE, DEFAULT_SPACING, PatchSpec
 
 # --------------------------------------------------------------------------- the parser
@@ -276,6 +277,82 @@ def xy_metres(text: str) -> tuple[float, float]:
     return x, y
 
 
+def add_vehicle_args(parser: argparse.ArgumentParser) -> None:
+    """``--vehicle NAME|FILE`` and ``--speed M/S``: the speed advice for a vehicle."""
+    g = parser.add_argument_group("speed advice for a vehicle (rough_map.vehicle)")
+    g.add_argument(
+        "--vehicle",
+        metavar="NAME|FILE",
+        help="a preset (rover, tractor, car) or a vehicle file: adds v_max and v_max_95 "
+        "(m/s, the highest speed keeping its limits; with 95 %% confidence)",
+    )
+    g.add_argument(
+        "--speed",
+        type=positive_float("m/s"),
+        metavar="M/S",
+        help="with --vehicle: also the rms responses at this speed (weighted acceleration, "
+        "suspension travel, dynamic load ratio)",
+    )
+
+
+def chosen_vehicle(args: argparse.Namespace) -> Any:
+    """The :class:`rough_map.vehicle.Vehicle` of ``--vehicle`` (None without one).
+
+    Raises
+    ------
+    InputError
+        ``--speed`` without ``--vehicle``, or above its top speed.
+    """
+    if args.vehicle is None:
+        if args.speed is not None:
+            raise InputError("--speed gives the responses of a --vehicle: name one")
+        return None
+    from rough_map.vehicle import load_vehicle
+
+    vehicle = load_vehicle(args.vehicle)
+    top = vehicle.limits.top_speed
+    if args.speed is not None and args.speed > top:
+        raise InputError(f"--speed {args.speed:g} m/s is above the {vehicle.name}'s {top:g} m/s")
+    return vehicle
+
+
+def add_costmap_args(parser: argparse.ArgumentParser) -> None:
+    """The costmap's settings (with ``--vehicle``): lethal speed and classes, mode."""
+    g = parser.add_argument_group("the costmap written with --vehicle (map_costmap.pgm/.yaml)")
+    g.add_argument(
+        "--lethal-speed",
+        type=non_negative_float("m/s"),
+        default=0.0,
+        metavar="M/S",
+        help="cells whose v_max is at or below this are lethal (default 0 m/s)",
+    )
+    g.add_argument(
+        "--lethal-class",
+        action="append",
+        default=[],
+        metavar="CLASS",
+        help="a terrain class that is lethal whatever its roughness (repeat for more)",
+    )
+    g.add_argument(
+        "--costmap-mode",
+        choices=("raw", "trinary"),
+        default="raw",
+        help="map_server mode of the image: raw (pixel = cost 0-100, 255 unknown; the "
+        "default) or trinary (occupied, free, unknown by the YAML's thresholds)",
+    )
+
+
+def costmap_settings(args: argparse.Namespace) -> Any:
+    """The :class:`rough_map.export.costmap.CostmapSettings` of the costmap options."""
+    from rough_map.export.costmap import CostmapSettings
+
+    return CostmapSettings(
+        lethal_speed=args.lethal_speed,
+        lethal_classes=tuple(args.lethal_class),
+        mode=args.costmap_mode,
+    )
+
+
 def add_route_args(parser: argparse.ArgumentParser) -> None:
     """``--route FILE`` (the positional argument is then a height raster) and its options."""
     g = parser.add_argument_group(
@@ -433,6 +510,8 @@ def analysis_options(args: argparse.Namespace) -> dict[str, Any]:
         "roughness": getattr(args, "roughness", "raw"),
         "n_jobs": args.jobs,
         "progress": args.progress,
+        "vehicle": chosen_vehicle(args) if hasattr(args, "vehicle") else None,
+        "speed": getattr(args, "speed", None),
     }
 
 

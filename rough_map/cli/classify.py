@@ -22,7 +22,9 @@ from rough_map.cli._common import (
     add_mode_arg,
     add_model_arg,
     add_traverses_arg,
+    add_vehicle_args,
     chosen_model,
+    chosen_vehicle,
     emit_json,
     open_traverses,
     status,
@@ -50,6 +52,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--out", type=Path, required=True, metavar="labels.csv", help="the per-frame CSV to write"
     )
     add_mode_arg(p)
+    add_vehicle_args(p)
     add_jobs_arg(p)
     p.add_argument("--json", action="store_true", help="print a JSON summary")
     p.set_defaults(func=run)
@@ -62,6 +65,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.out.suffix.lower() != ".csv":
         raise InputError(f"--out must be a .csv file, not {args.out.name!r}")
+    vehicle = chosen_vehicle(args)
     model = load_terrain_model(chosen_model(args))
     (tab,) = feature_tables(
         open_traverses(args, args.traverse),
@@ -77,7 +81,12 @@ def run(args: argparse.Namespace) -> int:
     # filter leaves out as isolated defects stay out of the smoothing, as in map)
     defect = None if pred.mode == "forward" else pred.defect
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    write_labels(smooth_table(tab, defect=defect), pred, args.out)
+    tab = smooth_table(tab, defect=defect)
+    if vehicle is not None:
+        from rough_map.features.driving import speed_advice
+
+        tab = speed_advice(tab, vehicle, args.speed)
+    write_labels(tab, pred, args.out)
     n_invalid = int((~pred.valid).sum())
     status(args, f"wrote {len(tab)} frames ({n_invalid} without a valid patch) to {args.out}")
     counts = Counter(str(c) for c in pred.filtered_class if c)

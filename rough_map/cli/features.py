@@ -22,6 +22,7 @@ from rough_map.cli._common import (
     add_patch_args,
     add_psd_args,
     add_route_args,
+    add_vehicle_args,
     emit_json,
     existing_path,
     finite_float,
@@ -93,6 +94,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_psd_args(p)
     add_jobs_arg(p)
     add_route_args(p)
+    add_vehicle_args(p)
     add_allow_outside_arg(p)
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     p.add_argument(

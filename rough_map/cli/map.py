@@ -19,13 +19,16 @@ from pathlib import Path
 
 from rough_map.cli._common import (
     add_command,
+    add_costmap_args,
     add_jobs_arg,
     add_map_args,
     add_model_arg,
     add_route_args,
     add_traverses_arg,
+    add_vehicle_args,
     analysis_options,
     chosen_model,
+    costmap_settings,
     emit_json,
     open_traverses,
     start_up,
@@ -49,6 +52,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     add_map_args(p)
     add_route_args(p)
+    add_vehicle_args(p)
+    add_costmap_args(p)
     p.add_argument(
         "--roughness",
         choices=("raw", "smoothed"),
@@ -139,6 +144,7 @@ def _run(args: argparse.Namespace) -> int:
         state=args.state,
         progress=args.progress,
         crg=args.crg,
+        costmap=costmap_settings(args),
     )
     if result.mapper is not None:
         result.mapper.close()  # its tiles on disk

@@ -22,6 +22,7 @@ from rough_map.cli._common import (
     add_model_arg,
     add_route_args,
     add_traverses_arg,
+    add_vehicle_args,
     analysis_options,
     chosen_model,
     open_traverses,
@@ -43,6 +44,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_model_arg(p)
     add_map_args(p)
     add_route_args(p)
+    add_vehicle_args(p)
     add_jobs_arg(p)
     p.set_defaults(func=run)
 

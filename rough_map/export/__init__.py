@@ -14,6 +14,9 @@ import logging
 from collections.abc import Iterable
 from pathlib import Path
 
+import numpy as np
+from numpy.typing import NDArray
+
 from rough_map._files import make_dir
 from rough_map.errors import InputError
 from rough_map.export.geotiff import (
@@ -40,6 +43,7 @@ def export_map(
     gridmap_bag: bool = False,
     threads: int = 2,
     gridmap_updates: Iterable[tuple[float, GridMap]] = (),
+    occupancy: NDArray[np.int8] | None = None,
 ) -> dict[str, Path]:
     """Write a map's files to ``out_dir`` (created if missing).
 
@@ -62,6 +66,9 @@ def export_map(
     gridmap_updates : iterable of (float, GridMap)
         The map around each update as it then stood, with its time in s
         (:meth:`rough_map.online.OnlineMapper.replay`), for the bag.
+    occupancy : ndarray of int8, optional
+        Costs of the map's cells (:func:`rough_map.export.costmap.cost_layer`), also in the
+        bag as a ``nav_msgs/OccupancyGrid`` on ``/rough_map/costmap``.
 
     Returns
     -------
@@ -91,7 +98,7 @@ def export_map(
             paths[f"png_{layer}"] = p
     if gridmap_bag:
         paths["gridmap_bag"] = write_gridmap_bag(
-            grid, out / f"{name}_gridmap", updates=gridmap_updates
+            grid, out / f"{name}_gridmap", updates=gridmap_updates, occupancy=occupancy
         )
     log.info("exported map %r: %d files in %s", name, len(paths), out)
     return paths

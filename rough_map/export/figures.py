@@ -95,6 +95,7 @@ def roughness_along_path(
     labels: Sequence[str] | None = None,
     defects: np.ndarray | None = None,
     smoothed: Mapping[str, np.ndarray] | None = None,
+    speed: Mapping[str, np.ndarray] | None = None,
     title: str = "",
 ) -> Path:
     """R (log scale, m³/rad) and w along the path (m) with 1-sigma bands (Figs. 7, 9, 12).
@@ -108,11 +109,15 @@ def roughness_along_path(
     ``sigma_lnR_smooth`` and ``sigma_w_smooth``
     (:class:`rough_map.filter.RoughnessSmoother`): it is drawn over the raw curves with its
     ±1σ band (``R exp(±sigma_lnR)``); the raw curves are then thinner.
+
+    ``speed``, if given, holds a vehicle's speed advice per frame, the features' ``v_max``
+    and ``v_max_95`` (m/s, :mod:`rough_map.features.driving`), drawn in a third panel.
     """
-    fig = _figure(9, 6.4)
+    panels = 2 if speed is None else 3
+    fig = _figure(9, 6.4 if speed is None else 8.6)
     fig.set_layout_engine("constrained")
-    ax1 = fig.add_subplot(2, 1, 1)
-    ax2 = fig.add_subplot(2, 1, 2, sharex=ax1)
+    ax1 = fig.add_subplot(panels, 1, 1)
+    ax2 = fig.add_subplot(panels, 1, 2, sharex=ax1)
     d = np.asarray(distance, float)
     ok = np.isfinite(R) & np.isfinite(w)
     smooth = _smoothed(smoothed, d.size)
@@ -124,7 +129,17 @@ def roughness_along_path(
         _smooth_curves(ax1, ax2, d, smooth)
     ax2.axhline(-2.0, color="tab:blue", lw=0.6, ls="--")
     ax2.set_ylabel("w")
-    ax2.set_xlabel("distance along the path [m]")
+    if speed is not None:
+        ax3 = fig.add_subplot(panels, 1, 3, sharex=ax1)
+        v, sure = np.asarray(speed["v_max"], float), np.asarray(speed["v_max_95"], float)
+        ax3.plot(d, v, "k-", lw=1.2, label="v_max")
+        ax3.plot(d, sure, color="tab:blue", ls="--", lw=1.0, label="v_max, 95 % confidence")
+        ax3.set_ylabel("speed advice [m/s]")
+        ax3.set_ylim(bottom=0)
+        ax3.legend(loc="lower right", fontsize=8, frameon=False)
+        ax3.set_xlabel("distance along the path [m]")
+    else:
+        ax2.set_xlabel("distance along the path [m]")
     if labels is not None and len(labels) == d.size:
         _shade_classes(ax1, ax2, d, labels)
     # the key above the plot, off the data

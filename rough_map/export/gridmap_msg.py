@@ -21,8 +21,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from rough_map.errors import FileFormatError, InputError
+from rough_map.export.costmap import OCCUPANCY_GRID, occupancy_grid_message
 from rough_map.io.rosbag.checks import check_bag
 from rough_map.io.rosbag.reader import available_topics, read_errors, topic_field, why
 from rough_map.map.grid import GridMap, GridMapData, to_grid_map
@@ -30,6 +32,7 @@ from rough_map.map.grid import GridMap, GridMapData, to_grid_map
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "COSTMAP_TOPIC",
     "GRID_MAP",
     "GRID_MAP_INFO",
     "grid_map_message",
@@ -74,6 +77,8 @@ uint16 inner_start_index
 
 #: Default topic of the map.
 TOPIC = "/rough_map/grid_map"
+#: Topic of the costmap (``nav_msgs/msg/OccupancyGrid``) a bag of a map with a vehicle holds.
+COSTMAP_TOPIC = "/rough_map/costmap"
 
 
 def grid_map_typestore(store: Any = None) -> Any:
@@ -200,6 +205,7 @@ def write_gridmap_bag(
     stamp_ns: int | None = None,
     updates: Iterable[tuple[float, GridMap]] = (),
     basic_layers: tuple[str, ...] = ("R",),
+    occupancy: NDArray[np.int8] | None = None,
 ) -> Path:
     """Write a map as GridMap messages in a ROS 2 bag with MCAP storage: one per update of
     the map as it grew, then the whole map.
@@ -226,6 +232,9 @@ def write_gridmap_bag(
     basic_layers : tuple of str
         grid_map's basic layers (a cell is valid where they are all known), those of them
         that each message has.
+    occupancy : ndarray of int8, optional
+        The map's costs (:func:`rough_map.export.costmap.cost_layer`): also one
+        ``nav_msgs/msg/OccupancyGrid`` on :data:`COSTMAP_TOPIC`, stamped as the whole map.
 
     Returns
     -------
@@ -260,6 +269,10 @@ def write_gridmap_bag(
             basic = tuple(b for b in basic_layers if b in data.layers)
             msg = grid_map_message(replace(data, basic_layers=basic), store, stamp_ns=stamp_ns)
             writer.write(conn, stamp_ns, store.serialize_cdr(msg, GRID_MAP))
+            if occupancy is not None:
+                costs = writer.add_connection(COSTMAP_TOPIC, OCCUPANCY_GRID, typestore=store)
+                grid_msg = occupancy_grid_message(grid, occupancy, store, stamp_ns=stamp_ns)
+                writer.write(costs, stamp_ns, store.serialize_cdr(grid_msg, OCCUPANCY_GRID))
         if path.exists():
             old = Path(tmp) / "replaced"
             os.replace(path, old)

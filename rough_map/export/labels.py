@@ -21,7 +21,8 @@ __all__ = ["LABEL_COLUMNS", "write_labels"]
 #: and its flag (ground unlike every trained class, :attr:`TerrainPrediction.novelty`; empty
 #: without a valid patch or a score), and the roughness
 #: smoothed along the path (R in m³/rad, w, standard deviations of ln R and w; empty when
-#: the features were not smoothed).
+#: the features were not smoothed), and the speed advice for a vehicle (``v_max``,
+#: ``v_max_95`` in m/s; empty without one: :mod:`rough_map.features.driving`).
 LABEL_COLUMNS = (
     "frame",
     "t",
@@ -39,6 +40,8 @@ LABEL_COLUMNS = (
     "novelty",
     "novel",
     *SMOOTH_COLUMNS,
+    "v_max",
+    "v_max_95",
 )
 
 
@@ -67,7 +70,10 @@ def write_labels(features: FeatureTable, prediction: TerrainPrediction, path: Pa
     defect = pred.defect if pred.defect is not None else np.zeros(len(f), dtype=bool)
     nan = np.full(len(f), np.nan)
     novelty = np.asarray(pred.novelty if pred.novelty is not None else nan, dtype=float)
-    smoothed = [np.asarray(f.columns.get(c, nan), dtype=float) for c in SMOOTH_COLUMNS]
+    smoothed = [
+        np.asarray(f.columns.get(c, nan), dtype=float)
+        for c in (*SMOOTH_COLUMNS, "v_max", "v_max_95")
+    ]
     # a column at a time: the same text as formatting each value (tolist gives the same
     # floats; a str column's values are written as they are)
     t, x, y = (np.asarray(f[c]).tolist() for c in ("t", "x", "y"))

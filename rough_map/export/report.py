@@ -97,6 +97,7 @@ def _path_figure(
     result: AnalysisResult, labels: list[str] | None, which: str, out: Path
 ) -> tuple[Path, str]:
     f, pred = result.features, result.prediction
+    advised = "v_max" in f.columns and bool(np.isfinite(f["v_max"]).any())
     path = fig.roughness_along_path(
         f.distance(),
         f["R"],
@@ -107,6 +108,7 @@ def _path_figure(
         labels=labels,
         defects=None if pred is None else pred.defect,
         smoothed={k: f[k] for k in SMOOTH_COLUMNS if k in f.columns} or None,
+        speed={k: f[k] for k in ("v_max", "v_max_95")} if advised else None,
         title=f"{result.traverse.name}: roughness along the path",
     )
     defects = (
@@ -120,6 +122,12 @@ def _path_figure(
         "smoothed along the path (Kalman smoother, ±1σ). Dashed lines mark the ISO "
         f"8608 class centres A–H (w = −2); the background is shaded by the {which} class"
         f"{defects}. Paper Figs. 7, 9, 12."
+        + (
+            " Bottom: the speed advice for the vehicle, v_max (m/s, the highest speed keeping "
+            "its limits), and the speed that holds with 95 % confidence."
+            if advised
+            else ""
+        )
     )
     return path, caption
 

@@ -51,8 +51,20 @@ READING_COLUMNS = (
 #: Where the frame's patch is: its centre in the world frame (m), ``ahead`` and
 #: ``lateral`` of the pose along its heading.
 PLACE_COLUMNS = ("patch_x", "patch_y")
+#: The speed advice for a vehicle (:mod:`rough_map.features.driving`; NaN without one):
+#: the highest speed keeping its limits, the same with 95 % confidence, and the rms
+#: responses at a chosen speed.
+DRIVE_COLUMNS = (
+    "v_max",
+    "v_max_95",
+    "weighted_acceleration",
+    "suspension_travel",
+    "dynamic_load_ratio",
+)
 #: Columns a table written before they existed may lack (read as NaN).
-OPTIONAL_COLUMNS = frozenset(SMOOTH_COLUMNS + SE_COLUMNS + READING_COLUMNS + PLACE_COLUMNS)
+OPTIONAL_COLUMNS = frozenset(
+    SMOOTH_COLUMNS + SE_COLUMNS + READING_COLUMNS + PLACE_COLUMNS + DRIVE_COLUMNS
+)
 
 #: Columns of a features table, in order (spectrum columns follow).
 COLUMNS = (
@@ -82,6 +94,7 @@ COLUMNS = (
     *SMOOTH_COLUMNS,
     *READING_COLUMNS,
     *PLACE_COLUMNS,
+    *DRIVE_COLUMNS,
 )
 TEXT_COLUMNS = frozenset({"iso_class", "reason", "label"})
 BOOL_COLUMNS = frozenset({"valid"})
@@ -126,6 +139,11 @@ COLUMN_UNITS = {
     "curvature_z": "",
     "patch_x": "m",
     "patch_y": "m",
+    "v_max": "m/s",
+    "v_max_95": "m/s",
+    "weighted_acceleration": "m/s²",
+    "suspension_travel": "m",
+    "dynamic_load_ratio": "",
 }
 
 
