@@ -56,7 +56,7 @@ from rough_map.map.grid_geometry import check_map_memory
 from rough_map.map.tiles import is_accumulator
 from rough_map.online import OnlineMapper
 from rough_map.patch import Extraction, options_of
-from rough_map.vehicle import Vehicle
+from rough_map.vehicle import SpeedTable, Vehicle
 
 log = logging.getLogger(__name__)
 
@@ -296,12 +296,7 @@ def analyse(
     )
     grid.attrs["traverse"] = traverse.name
     if opt.vehicle is not None:
-        grid.add_layer(
-            "v_max",
-            units="m/s",
-            description=f"highest speed keeping the {opt.vehicle.name}'s limits",
-            data=speed_table(features, opt.vehicle).v_max(grid["R"], grid["w"]),
-        )
+        _speed_layers(grid, speed_table(features, opt.vehicle), opt.speed)
     log_fused(len(features), np.asarray(features.valid, dtype=bool), grid, resolution)
     result = TraverseAnalysis(traverse, features, prediction, grid, model, extraction)
     result.mapper = mapper
@@ -320,6 +315,34 @@ def analyse(
         mapper.tiles.add_group("far")
         mapper.tiles.add_layers_from(grid, far_sums)
     return result
+
+
+def _speed_layers(grid: GridMap, speeds: SpeedTable, speed: float | None) -> None:
+    """The map's speed advice from each cell's fused R and w: ``v_max`` (m/s) and, at
+    ``speed``, the rms responses."""
+    name = speeds.vehicle.name
+    R, w = grid["R"], grid["w"]
+    grid.add_layer(
+        "v_max",
+        units="m/s",
+        description=f"highest speed keeping the {name}'s limits",
+        data=speeds.v_max(R, w),
+    )
+    if speed is None:
+        return
+    at = speeds.response(R, w, speed)
+    responses = (
+        ("weighted_acceleration", "m/s^2", "ISO 2631-1 Wk-weighted rms acceleration"),
+        ("suspension_travel", "m", "rms suspension travel"),
+        ("dynamic_load_ratio", "1", "rms dynamic tyre load over the static load"),
+    )
+    for layer, units, what in responses:
+        grid.add_layer(
+            layer,
+            units=units,
+            description=f"{what} of the {name} at {speed:g} m/s",
+            data=getattr(at, layer),
+        )
 
 
 def analyse_model_file(

@@ -151,3 +151,26 @@ def test_features_json_names_the_vehicle(small_traverse: Path, tmp_path: Path) -
     assert proc.returncode == 0, proc.stderr
     assert json.loads(proc.stdout)["frames"] == len(read_features(out))
     assert "car: v_max median" in proc.stderr
+
+
+def test_one_cloud_gets_its_speed_advice_and_the_band_it_covers(small_traverse: Path) -> None:
+    cloud = sorted((small_traverse / "clouds").iterdir())[0]
+    proc = _run("features", str(cloud), "--vehicle", "car", "--speed", "10", "--json")
+    assert proc.returncode == 0, proc.stderr
+    advice = json.loads(proc.stdout)["speed_advice"]
+    assert advice["vehicle"] == "car" and 0 <= advice["v_max_95_m_s"] <= advice["v_max_m_s"]
+    at = advice["at_speed"]
+    lo, hi = at["band_hz"]  # the band 7-392 rad/m at 10 m/s: 11-625 Hz
+    assert lo == pytest.approx(10 * 7.0 / (2 * np.pi), rel=0.05) and hi > 500
+    assert at["resonances_outside_band"] == ["body"]  # 1.2 Hz below it, 11 Hz wheel inside
+    assert at["weighted_acceleration_m_s2"] > 0 and at["dynamic_load_ratio"] > 0
+
+
+def test_the_map_at_a_speed_has_the_response_layers(mapped: Path) -> None:
+    with rasterio.open(mapped / "map.tif") as ds:
+        names = list(ds.descriptions)
+        assert {"v_max", "weighted_acceleration", "suspension_travel"} <= set(names)
+        acc = ds.read(names.index("weighted_acceleration") + 1, masked=True)
+        v = ds.read(names.index("v_max") + 1, masked=True)
+    assert np.array_equal(np.ma.getmaskarray(acc), np.ma.getmaskarray(v))
+    assert (acc.compressed() > 0).all()

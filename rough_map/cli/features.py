@@ -23,6 +23,7 @@ from rough_map.cli._common import (
     add_psd_args,
     add_route_args,
     add_vehicle_args,
+    chosen_vehicle,
     emit_json,
     existing_path,
     finite_float,
@@ -216,6 +217,7 @@ def run_cloud(args: argparse.Namespace) -> int:
         subtract_noise=not args.keep_noise,
         auto_spacing=args.spacing == "auto",
     )
+    vehicle = chosen_vehicle(args)
     t0 = time.perf_counter()
     points = _load(args)
     t1 = time.perf_counter()
@@ -255,11 +257,60 @@ def run_cloud(args: argparse.Namespace) -> int:
         "tilt_compensated": args.roll is not None or args.pitch is not None,
         "timing_ms": timing_ms,
     }
+    advice = None if vehicle is None else _speed_advice(vehicle, rough, args.speed)
+    if advice is not None:
+        result["speed_advice"] = advice
     if args.json:
         emit_json(result)
         return 0
-    print(table(_cloud_rows(args.source, len(points), grid, rough, timing_ms)))
+    rows = _cloud_rows(args.source, len(points), grid, rough, timing_ms)
+    if advice is not None:
+        rows.append(["speed", _advice_text(advice)])
+    print(table(rows))
     return 0
+
+
+def _speed_advice(vehicle: Any, rough: PatchRoughness, speed: float | None) -> dict[str, Any]:
+    """The vehicle's v_max over the patch and, at ``speed``, its responses, the band's
+    temporal frequencies and the resonances outside them."""
+    from rough_map.vehicle import SpeedTable
+
+    speeds = SpeedTable(vehicle, (float(rough.omega[0]), float(rough.omega[-1])))
+    out: dict[str, Any] = {
+        "vehicle": vehicle.name,
+        "top_speed_m_s": vehicle.limits.top_speed,
+        "v_max_m_s": float(speeds.v_max(rough.R, rough.w)[0]),
+        "v_max_95_m_s": float(speeds.v_max(rough.R, rough.w, rough.se_lnR, rough.se_w)[0]),
+    }
+    if speed is not None:
+        r = speeds.response(rough.R, rough.w, speed)
+        out["at_speed"] = {
+            "speed_m_s": speed,
+            "weighted_acceleration_m_s2": float(r.weighted_acceleration[0]),
+            "suspension_travel_m": float(r.suspension_travel[0]),
+            "dynamic_load_ratio": float(r.dynamic_load_ratio[0]),
+            "band_hz": list(r.band_hz),
+            "resonances_outside_band": r.outside,
+        }
+    return out
+
+
+def _advice_text(advice: dict[str, Any]) -> str:
+    text = (
+        f"{advice['vehicle']}: v_max {advice['v_max_m_s']:.2f} m/s "
+        f"({advice['v_max_95_m_s']:.2f} with 95 % confidence; top {advice['top_speed_m_s']:g})"
+    )
+    at = advice.get("at_speed")
+    if at:
+        lo, hi = at["band_hz"]
+        outside = at["resonances_outside_band"]
+        text += (
+            f"; at {at['speed_m_s']:g} m/s: {at['weighted_acceleration_m_s2']:.3g} m/s² "
+            f"weighted, travel {at['suspension_travel_m'] * 1e3:.3g} mm, load ratio "
+            f"{at['dynamic_load_ratio']:.3g}; the band covers {lo:.3g}-{hi:.3g} Hz"
+            + (f" ({' and '.join(outside)} mode outside it)" if outside else "")
+        )
+    return text
 
 
 def _cloud_rows(

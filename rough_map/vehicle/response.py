@@ -182,14 +182,20 @@ class SpeedTable:
             raise InputError(
                 f"speed must be in (0, {self.speeds[-1]:g}] m/s (the top speed), got {speed!r}"
             )
-        var = self._variance(R, w)  # (3, N, speeds)
-        at = np.array(
-            [
-                np.interp(math.log(speed), np.log(self.speeds), v)
-                for v in var.reshape(-1, var.shape[-1])
-            ]
-        )
-        rms = np.sqrt(at.reshape(var.shape[:2]))
+        R = np.atleast_1d(np.asarray(R, dtype=float))
+        shape = R.shape  # any shape: a table's column or a map's layer
+        w = np.broadcast_to(np.asarray(w, dtype=float), shape).ravel()
+        var = self._variance(R.ravel(), w)  # (3, N, speeds)
+        # between two tabulated speeds each variance grows as a power of v, as in v_max
+        ln_v = np.log(self.speeds)
+        x = math.log(speed)
+        j = int(np.clip(np.searchsorted(ln_v, x), 1, ln_v.size - 1))
+        f = (x - ln_v[j - 1]) / (ln_v[j] - ln_v[j - 1])
+        a, b = var[..., j - 1], var[..., j]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            logs = np.exp((1 - f) * np.log(a) + f * np.log(b))
+        at = np.where((a > 0) & (b > 0), logs, (1 - f) * a + f * b)
+        rms = np.sqrt(at).reshape(3, *shape)
         lo, hi = (speed * b / (2 * math.pi) for b in self.band)
         car = self.vehicle.quarter_car
         modes = {"body": car.body_frequency, "wheel": car.wheel_frequency}
