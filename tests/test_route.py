@@ -277,6 +277,8 @@ def test_bad_routes_get_one_line(dem: Path, tmp_path: Path) -> None:
         "short.geojson": ('{"type": "LineString", "coordinates": [[1, 2]]}', "2 or more"),
         "inf.geojson": ('{"type": "LineString", "coordinates": [[0, 0], [1e999, 0]]}', "NaN or"),
         "flat.geojson": ('{"type": "LineString", "coordinates": [[0, 0], [0, 0]]}', "no length"),
+        "far.geojson": ('{"type": "LineString", "coordinates": [[0, 0], [1e12, 0]]}', "beyond"),
+        "far.csv": ("x,y\n1,2\n1e15,3\n", "line 3, column x: beyond"),
         "route.kml": ("<kml/>", "a route is a .geojson LineString or a .csv"),
     }
     for name, (text, message) in cases.items():

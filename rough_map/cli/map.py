@@ -36,6 +36,7 @@ from rough_map.cli._common import (
     table,
     unused_optional_imports,
 )
+from rough_map.errors import InputError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -130,7 +131,14 @@ def _run(args: argparse.Namespace) -> int:
         from rough_map.classify import load_terrain_model
 
         options = AnalysisOptions(**analysis_options(args))
+        costmap = costmap_settings(args)
         terrain_model = load_terrain_model(model)
+        classes = [str(c) for c in terrain_model.classes_]
+        unknown = [c for c in costmap.lethal_classes if c not in classes]
+        if unknown:  # say so before the long run
+            raise InputError(
+                f"--lethal-class {unknown[0]!r} is not a class of the model ({', '.join(classes)})"
+            )
     except BaseException:
         if frames is not None:
             frames.close()
@@ -144,7 +152,7 @@ def _run(args: argparse.Namespace) -> int:
         state=args.state,
         progress=args.progress,
         crg=args.crg,
-        costmap=costmap_settings(args),
+        costmap=costmap,
     )
     if result.mapper is not None:
         result.mapper.close()  # its tiles on disk

@@ -150,10 +150,22 @@ def surface_of(
     return str(path), spec.spacing, spec.origin
 
 
-@functools.lru_cache(maxsize=2)
 def open_surface(surface: tuple[str, float | None, tuple[float, float] | None]) -> HeightRaster:
-    """The height raster of a :attr:`FrameJob.surface`, opened once per process."""
+    """The height raster of a :attr:`FrameJob.surface`, opened once per process (again
+    when the file changes)."""
     path, spacing, origin = surface
+    try:
+        st = os.stat(path)
+        stamp = (st.st_mtime_ns, st.st_size)
+    except OSError:
+        stamp = (0, 0)  # open_height_raster says what is wrong
+    return _opened_surface(path, spacing, origin, stamp)
+
+
+@functools.lru_cache(maxsize=2)
+def _opened_surface(
+    path: str, spacing: float | None, origin: tuple[float, float] | None, stamp: tuple[int, int]
+) -> HeightRaster:
     return open_height_raster(path, spacing=spacing, origin=origin or (0.0, 0.0))
 
 

@@ -43,6 +43,8 @@ __all__ = ["MAX_ROUTE_FRAMES", "ROUTE_SPEED", "read_route", "route_traverse"]
 ROUTE_SPEED = 1.0
 #: Most frames a route may make.
 MAX_ROUTE_FRAMES = 1_000_000
+#: Largest |x|, |y| (m) and |yaw| (rad) of a route: beyond any projected CRS.
+MAX_COORDINATE = 1e9
 #: Largest route file read, bytes.
 _MAX_BYTES = 256 * 2**20
 _EPSG = re.compile(r"EPSG:{1,2}(\d+)\s*$", re.I)
@@ -196,6 +198,8 @@ def _line(path: Path, text: str) -> NDArray[np.float64]:
         ) from None
     if not np.isfinite(xy).all():
         raise FileFormatError(path, "coordinates: NaN or infinite")
+    if np.abs(xy).max() > MAX_COORDINATE:
+        raise FileFormatError(path, f"coordinates: beyond {MAX_COORDINATE:g} m of the origin")
     return xy
 
 
@@ -255,6 +259,11 @@ def _csv_poses(path: Path, text: str) -> NDArray[np.float64]:
         if not np.isfinite(values).all():
             bad = int(np.flatnonzero(~np.isfinite(values))[0])
             raise FileFormatError(path, f"line {bad + 2}, column {name}: NaN or infinite")
+        if name != "t" and np.abs(values).max() > MAX_COORDINATE:
+            bad = int(np.flatnonzero(np.abs(values) > MAX_COORDINATE)[0])
+            raise FileFormatError(
+                path, f"line {bad + 2}, column {name}: beyond {MAX_COORDINATE:g} (m or rad)"
+            )
         columns[name] = values
     x, y = columns["x"], columns["y"]
     if "yaw" in columns:

@@ -53,6 +53,8 @@ MIN_WAVENUMBER = 0.05
 Z95 = 1.6448536269514722
 #: Waviness nodes of the table (w is clipped to them).
 _W_NODES = np.round(np.arange(-4.0, -0.45, 0.05), 10)
+#: Patches whose variances at every speed are held at once (3 x 160 x 4096 floats, 16 MB).
+_CHUNK = 4096
 #: Points of the frequency integral per decade.
 _PER_DECADE = 200
 
@@ -185,13 +187,14 @@ class SpeedTable:
         R = np.atleast_1d(np.asarray(R, dtype=float))
         shape = R.shape  # any shape: a table's column or a map's layer
         w = np.broadcast_to(np.asarray(w, dtype=float), shape).ravel()
-        var = self._variance(R.ravel(), w)  # (3, N, speeds)
         # between two tabulated speeds each variance grows as a power of v, as in v_max
         ln_v = np.log(self.speeds)
         x = math.log(speed)
         j = int(np.clip(np.searchsorted(ln_v, x), 1, ln_v.size - 1))
         f = (x - ln_v[j - 1]) / (ln_v[j] - ln_v[j - 1])
-        a, b = var[..., j - 1], var[..., j]
+        table = self._table[:, :, j - 1 : j + 1]  # only the two speeds around it
+        var = self._variance(R.ravel(), w, table)  # (3, N, 2)
+        a, b = var[..., 0], var[..., 1]
         with np.errstate(divide="ignore", invalid="ignore"):
             logs = np.exp((1 - f) * np.log(a) + f * np.log(b))
         at = np.where((a > 0) & (b > 0), logs, (1 - f) * a + f * b)
@@ -217,24 +220,42 @@ class SpeedTable:
         shape = R.shape  # any shape: a table's column or a map's layer
         R = R.ravel()
         w = np.broadcast_to(np.asarray(w, dtype=float), shape).ravel()
+        read = np.isfinite(R) & np.isfinite(w) & (R > 0)  # a map's unseen cells cost nothing
+        out = np.full(R.shape, np.nan)
+        r, v = np.asarray(R[read], dtype=float), np.asarray(w[read], dtype=float)
         if se_lnR is None and se_w is None:
-            return self._v_max(R, w).reshape(shape)
-        up = np.exp(Z95 * np.nan_to_num(_flat(se_lnR, shape)))
-        dw = Z95 * np.nan_to_num(_flat(se_w, shape))
-        return np.fmin(self._v_max(R * up, w - dw), self._v_max(R * up, w + dw)).reshape(shape)
+            out[read] = self._v_max(r, v)
+            return out.reshape(shape)
+        up = np.exp(Z95 * np.nan_to_num(_flat(se_lnR, shape)[read]))
+        dw = Z95 * np.nan_to_num(_flat(se_w, shape)[read])
+        out[read] = np.fmin(self._v_max(r * up, v - dw), self._v_max(r * up, v + dw))
+        return out.reshape(shape)
 
-    def _variance(self, R: ArrayLike, w: ArrayLike) -> NDArray[np.float64]:
-        """Variances (3, N, speeds) of the responses to each patch at every speed."""
+    def _variance(
+        self, R: ArrayLike, w: ArrayLike, table: NDArray[np.float64] | None = None
+    ) -> NDArray[np.float64]:
+        """Variances (3, N, speeds) of the responses to each patch at every speed (of
+        ``table``, a slice of the speeds of the whole table)."""
+        full = self._table if table is None else table
         R = np.atleast_1d(np.asarray(R, dtype=float))
         w = np.atleast_1d(np.asarray(w, dtype=float))
         pos = (np.clip(w, _W_NODES[0], _W_NODES[-1]) - _W_NODES[0]) / 0.05
         pos = np.nan_to_num(pos)
         i = np.minimum(pos.astype(int), _W_NODES.size - 2)
         frac = (pos - i)[None, :, None]
-        table = (1 - frac) * self._table[:, i, :] + frac * self._table[:, i + 1, :]
-        return np.asarray(table * R[None, :, None], dtype=np.float64)
+        var = (1 - frac) * full[:, i, :] + frac * full[:, i + 1, :]
+        return np.asarray(var * R[None, :, None], dtype=np.float64)
 
     def _v_max(self, R: NDArray[np.float64], w: NDArray[np.float64]) -> NDArray[np.float64]:
+        """:meth:`v_max` of flat arrays, :data:`_CHUNK` patches at a time (bounded memory
+        for a map of millions of cells)."""
+        if R.size > _CHUNK:
+            return np.concatenate(
+                [
+                    self._v_max(R[k : k + _CHUNK], w[k : k + _CHUNK])
+                    for k in range(0, R.size, _CHUNK)
+                ]
+            )
         var = self._variance(R, w)
         limits = self.vehicle.limits
         caps = [limits.weighted_acceleration, None, limits.dynamic_load_ratio]
@@ -246,20 +267,22 @@ class SpeedTable:
         broken = ~ok
         first = np.where(broken.any(axis=1), broken.argmax(axis=1), -1)
         out = np.full(R.shape, self.speeds[-1])
-        ln_v = np.log(self.speeds)
-        for n in np.flatnonzero(first >= 0):
-            j = int(first[n])
-            if j == 0:
-                out[n] = 0.0
-                continue
-            # each response grows as a power of v between two nodes: interpolate in logs
-            frac = 1.0
+        out[first == 0] = 0.0
+        cells = np.flatnonzero(first > 0)
+        j = first[cells]
+        # each response grows as a power of v between two nodes: interpolate in logs
+        frac = np.ones(cells.size)
+        with np.errstate(divide="ignore", invalid="ignore"):
             for k, cap in enumerate(caps):
-                if cap is None or ok[n, j] or var[k, n, j] <= cap**2:
+                if cap is None:
                     continue
-                a, b = math.log(var[k, n, j - 1]), math.log(var[k, n, j])
-                frac = min(frac, (2 * math.log(cap) - a) / (b - a) if b > a else 1.0)
-            out[n] = math.exp(ln_v[j - 1] + frac * (ln_v[j] - ln_v[j - 1]))
+                lo, hi = var[k, cells, j - 1], var[k, cells, j]
+                breaks = hi > cap**2
+                a, b = np.log(lo), np.log(hi)
+                f = np.where(b > a, (2 * math.log(cap) - a) / (b - a), 1.0)
+                frac = np.where(breaks, np.fmin(frac, f), frac)
+        ln_v = np.log(self.speeds)
+        out[cells] = np.exp(ln_v[j - 1] + np.clip(frac, 0.0, 1.0) * (ln_v[j] - ln_v[j - 1]))
         out[~(np.isfinite(R) & np.isfinite(w) & (R > 0))] = np.nan
         return out
 
