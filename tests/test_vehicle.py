@@ -128,12 +128,13 @@ def test_the_spectral_response_is_the_time_domain_one(preset: str, speeds: tuple
                 assert a == pytest.approx(b, rel=0.02), (preset, cls, speed, name)
 
 
-def test_a_drive_at_v_max_meets_the_limit() -> None:
-    """On constant class-E ground, the tractor at v_max meets its binding limit within 5 %
-    in the time domain."""
-    vehicle = load_vehicle("tractor")
+@pytest.mark.parametrize(("preset", "cls"), [("tractor", "E"), ("car", "D"), ("rover", "D")])
+def test_a_drive_at_v_max_meets_the_limit(preset: str, cls: str) -> None:
+    """On ground of one constant class, the vehicle at v_max meets its binding limit
+    within 5 % in the time domain."""
+    vehicle = load_vehicle(preset)
     table = SpeedTable(vehicle, BAND)
-    R = PHI0["E"]
+    R = PHI0[cls]
     v = float(table.v_max(R, -2.0)[0])
     assert 0 < v < vehicle.limits.top_speed
     z, dx = _drive(R, v, seed=7)
