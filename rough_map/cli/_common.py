@@ -324,12 +324,11 @@ def add_costmap_args(parser: argparse.ArgumentParser) -> None:
         type=non_negative_float("m/s"),
         default=0.0,
         metavar="M/S",
-        help="cells whose v_max is at or below this are lethal (default 0 m/s)",
+        help="cells whose v_max is at or below this are lethal (default 0.0 m/s)",
     )
     g.add_argument(
         "--lethal-class",
         action="append",
-        default=[],
         metavar="CLASS",
         help="a terrain class that is lethal whatever its roughness (repeat for more)",
     )
@@ -348,7 +347,7 @@ def costmap_settings(args: argparse.Namespace) -> Any:
 
     return CostmapSettings(
         lethal_speed=args.lethal_speed,
-        lethal_classes=tuple(args.lethal_class),
+        lethal_classes=tuple(args.lethal_class or ()),
         mode=args.costmap_mode,
     )
 
