@@ -14,7 +14,6 @@ OpenCV told so): the processes use the cores, and the per-frame matrices are sma
 
 from __future__ import annotations
 
-import functools
 import logging
 import math
 import os
@@ -35,7 +34,7 @@ from rough_map.errors import FileFormatError, InputError
 from rough_map.features.extract import GriddedFrame, grid_frame, measure_frames
 from rough_map.geometry import pose_matrix, rotation_matrix, transform_columns
 from rough_map.io.pointcloud import read_cloud
-from rough_map.io.raster import HeightRaster, open_height_raster
+from rough_map.io.raster import HeightRaster, shared_height_raster
 from rough_map.io.traverse import Traverse
 from rough_map.patch import Extraction, GriddedPatch
 from rough_map.patch._params import check_int
@@ -152,21 +151,8 @@ def surface_of(
 
 def open_surface(surface: tuple[str, float | None, tuple[float, float] | None]) -> HeightRaster:
     """The height raster of a :attr:`FrameJob.surface`, opened once per process (again
-    when the file changes)."""
-    path, spacing, origin = surface
-    try:
-        st = os.stat(path)
-        stamp = (st.st_mtime_ns, st.st_size)
-    except OSError:
-        stamp = (0, 0)  # open_height_raster says what is wrong
-    return _opened_surface(path, spacing, origin, stamp)
-
-
-@functools.lru_cache(maxsize=2)
-def _opened_surface(
-    path: str, spacing: float | None, origin: tuple[float, float] | None, stamp: tuple[int, int]
-) -> HeightRaster:
-    return open_height_raster(path, spacing=spacing, origin=origin or (0.0, 0.0))
+    when the file changes: :func:`rough_map.io.raster.shared_height_raster`)."""
+    return shared_height_raster(*surface)
 
 
 @dataclass(frozen=True)

@@ -32,8 +32,10 @@ the field, or an :class:`~rough_map.errors.InputError` for a bad argument.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
+import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -55,7 +57,7 @@ from rough_map.limits import LIMITS
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CLOUD_POINTS_PER_CELL", "HeightRaster", "open_height_raster"]
+__all__ = ["CLOUD_POINTS_PER_CELL", "HeightRaster", "open_height_raster", "shared_height_raster"]
 
 
 @dataclass(frozen=True)
@@ -214,6 +216,26 @@ def open_height_raster(
         raise InputError(f"{path.name}: a GDAL raster gives its own cell size; drop spacing")
     with _rasterio_errors(path), _open(path) as ds:
         return _describe(path, ds)
+
+
+def shared_height_raster(
+    path: PathLike, spacing: float | None = None, origin: tuple[float, float] | None = None
+) -> HeightRaster:
+    """:func:`open_height_raster`, opened once per process while the file is unchanged (a
+    gridded cloud or a text CRG is read and gridded once, however many frames cut from it)."""
+    try:
+        st = os.stat(path)
+        stamp = (st.st_mtime_ns, st.st_size)
+    except (OSError, ValueError):
+        stamp = (0, 0)  # open_height_raster says what is wrong
+    return _shared(os.path.realpath(path), spacing, origin, stamp)
+
+
+@functools.lru_cache(maxsize=2)
+def _shared(
+    path: str, spacing: float | None, origin: tuple[float, float] | None, stamp: tuple[int, int]
+) -> HeightRaster:
+    return open_height_raster(path, spacing=spacing, origin=origin or (0.0, 0.0))
 
 
 def _open_npy(path: Path, spacing: float | None, origin: Any, crs: Any) -> HeightRaster:

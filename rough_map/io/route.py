@@ -34,7 +34,7 @@ from rough_map._files import PathLike
 from rough_map.config import Crs, FrameSpec, Pose, SurfaceSpec, TraverseSpec
 from rough_map.errors import FileFormatError, InputError
 from rough_map.io._check import check_readable
-from rough_map.io.raster import open_height_raster
+from rough_map.io.raster import open_height_raster, shared_height_raster
 from rough_map.io.traverse import Traverse
 
 __all__ = ["MAX_ROUTE_FRAMES", "ROUTE_SPEED", "read_route", "route_traverse"]
@@ -125,7 +125,10 @@ def route_traverse(
         raster not in metres.
     """
     raster, route = Path(raster), Path(route)
-    surface = open_height_raster(raster, spacing=spacing, origin=origin or (0.0, 0.0), crs=crs)
+    if crs is None:  # the frames open the same raster: read (and grid) it once
+        surface = shared_height_raster(raster, spacing, origin)
+    else:
+        surface = open_height_raster(raster, spacing=spacing, origin=origin or (0.0, 0.0), crs=crs)
     if surface.unit_m != 1.0:
         raise InputError(
             f"{raster.name}: a route needs a raster in metres, not in units of "

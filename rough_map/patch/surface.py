@@ -16,7 +16,12 @@ reads. :func:`cut_patch` samples the raster at the patch's nodes:
   weights would not do: on isotropic power-law ground, cubic splines at 17 degrees read w
   0.2 steeper and R 2.3-2.4 times higher than the same places along the rows; Fourier
   interpolation reads within the ground's own spread between directions (0.03-0.13 in
-  median ln R at 17, 45 and 115 degrees, ``tests/test_route.py``).
+  median ln R at 17, 45 and 115 degrees, ``tests/test_route.py``). That holds for ground
+  the raster's step resolves. Real texture finer than two cells (the CAPTIF chipseal laid
+  out as 8 mm cell means) is aliased in the raster, and no resampling recovers it: turned
+  patches there read -0.6 to +0.7 in median ln R from the same ground sampled exactly at
+  the turned nodes (cubic splines +0.4 to +0.5, the unturned patch -0.7 to -0.9). Prefer
+  routes along the raster's axes on such ground, or a raster at a finer step.
 
 The profiles run along the vehicle's heading, as a traverse's do.
 """
