@@ -1,5 +1,3 @@
-import sys
+from rough_map.cli.main import entry
 
-from rough_map.cli.main import main
-
-sys.exit(main())
+entry()

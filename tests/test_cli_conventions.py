@@ -620,6 +620,37 @@ print(",".join(reached))
             p.wait()
 
 
+def test_a_ctrl_c_in_a_deferred_block_is_taken_when_it_ends() -> None:
+    """loky's shut-down of its workers runs to its end under a Ctrl-C (interrupted half-way
+    it left semaphores that its resource tracker warned of, and tracebacks, in a CI run):
+    the KeyboardInterrupt comes after the block, the handler is put back."""
+    import subprocess
+    import sys
+
+    script = """
+import os, signal
+from rough_map.features.frames import sigint_deferred
+reached = []
+try:
+    with sigint_deferred():
+        os.kill(os.getpid(), signal.SIGINT)
+        for _ in range(10**5):
+            pass
+        reached.append("inside")
+    reached.append("after")
+except KeyboardInterrupt:
+    reached.append("interrupted")
+assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+with sigint_deferred():
+    reached.append("quiet")
+print(",".join(reached))
+"""
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         timeout=120)  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == "inside,interrupted,quiet"
+
+
 def test_a_ctrl_c_inside_an_extensions_import_is_an_interrupt(
     monkeypatch, capsys, tmp_path: Path
 ) -> None:

@@ -11,6 +11,7 @@ the CLI defers imports of rough_map modules; private helper modules (``_common``
 from __future__ import annotations
 
 import argparse
+import atexit
 import importlib
 import logging
 import os
@@ -68,6 +69,32 @@ def _configure_logging(verbose: int, quiet: bool) -> None:
     root.handlers[:] = [handler]
     root.setLevel(level)
     root.propagate = False
+
+
+def entry() -> None:
+    """The ``rough-map`` command: :func:`main`, and the process's exit with its status.
+
+    After a Ctrl-C the process ends without the interpreter's own shut-down: the exit
+    handlers run (loky's workers stop, their semaphores are removed, temporary files go),
+    then :func:`os._exit`. A library's thread interrupted mid-way could otherwise hang that
+    shut-down or call into an interpreter already finalising (a fatal error, exit -6)."""
+    code = main()
+    if code == 130:
+        _exit_now(code)
+    sys.exit(code)
+
+
+def _exit_now(code: int) -> None:
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    try:
+        atexit._run_exitfuncs()
+    except BaseException:  # a second Ctrl-C, or a handler that failed: leave all the same
+        pass
+    os._exit(code)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -10,6 +10,7 @@ libraries (rasterio, matplotlib, rosbags) are imported only when a writer runs.
 
 from __future__ import annotations
 
+import importlib
 import logging
 from collections.abc import Iterable
 from pathlib import Path
@@ -31,7 +32,20 @@ from rough_map.map.grid import GridMap
 
 log = logging.getLogger(__name__)
 
-__all__ = ["export_map"]
+__all__ = ["export_map", "import_writers"]
+
+#: What the writers import when they first run, and the grid_map bag's writer.
+_WRITER_MODULES = ("rasterio", "rasterio.enums", "rasterio.shutil", "rasterio.windows")
+_BAG_MODULES = ("rosbags.typesys", "rosbags.rosbag2")
+
+
+def import_writers(gridmap_bag: bool = False) -> None:
+    """Import the libraries :func:`export_map` uses on this thread, before it runs on
+    another. A Ctrl-C that breaks an import on this thread can leave CPython's import lock
+    held (the ``KeyboardInterrupt`` lands between taking and releasing it), and a thread
+    importing meanwhile would wait for it for ever."""
+    for name in _WRITER_MODULES + (_BAG_MODULES if gridmap_bag else ()):
+        importlib.import_module(name)
 
 
 def export_map(

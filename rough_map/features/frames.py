@@ -491,10 +491,38 @@ def start_executor(processes: int, first: Callable[[Any], Iterable[Any]]) -> Any
         for future in futures:
             future.cancel()
         if executor is not None:
-            executor.shutdown(wait=True)
-            _stop_resource_tracker()
+            with sigint_deferred():
+                executor.shutdown(wait=True)
+                _stop_resource_tracker()
         raise
     return executor
+
+
+@contextmanager
+def sigint_deferred() -> Iterator[None]:
+    """A Ctrl-C in this block is taken when it ends: the block runs to its end first.
+
+    For the steps that a ``KeyboardInterrupt`` raised half-way would leave broken, such as
+    loky's shut-down of its workers (their semaphores then stay registered, and loky's
+    resource tracker prints a warning and tracebacks as the run exits). Outside the main
+    thread the block does nothing (signals reach the main thread only)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+
+    def later(signum: int, frame: object) -> None:
+        caught.append(signum)
+
+    previous = signal.signal(signal.SIGINT, later)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if caught and callable(previous):
+        previous(signal.SIGINT, None)  # the default handler raises KeyboardInterrupt
+    elif caught and previous == signal.SIG_DFL:
+        raise KeyboardInterrupt
 
 
 @contextmanager
@@ -672,9 +700,10 @@ class FrameStream:
         # The workers would idle for minutes holding their memory: the map's merge and
         # export come next, and need it more. So would loky's resource tracker (about
         # 40 MB), which has nothing left to track; a later pass starts a new one.
-        self._executor.shutdown(wait=True)
-        self._executor = None
-        _stop_resource_tracker()
+        with sigint_deferred():
+            self._executor.shutdown(wait=True)
+            self._executor = None
+            _stop_resource_tracker()
 
 
 def _stop_resource_tracker() -> None:
