@@ -318,7 +318,9 @@ def analyse(
 
 
 def _speed_layers(grid: GridMap, speeds: SpeedTable, speed: float | None) -> None:
-    """The map's speed advice from each cell's fused R and w: ``v_max`` (m/s) and, at
+    """The map's speed advice from each cell's fused R and w: ``v_max`` (m/s), the speed
+    ``v_max_95`` that holds with 95 % confidence from the cell's spread of R and w (its
+    ``sigma_R`` and ``sigma_w``: the frames' standard errors and their scatter) and, at
     ``speed``, the rms responses."""
     name = speeds.vehicle.name
     R, w = grid["R"], grid["w"]
@@ -327,6 +329,14 @@ def _speed_layers(grid: GridMap, speeds: SpeedTable, speed: float | None) -> Non
         units="m/s",
         description=f"highest speed keeping the {name}'s limits",
         data=speeds.v_max(R, w),
+    )
+    with np.errstate(invalid="ignore", divide="ignore"):
+        se_ln_r = grid["sigma_R"] / R
+    grid.add_layer(
+        "v_max_95",
+        units="m/s",
+        description=f"speed keeping the {name}'s limits with 95 % confidence",
+        data=speeds.v_max(R, w, se_ln_r, grid["sigma_w"]),
     )
     if speed is None:
         return

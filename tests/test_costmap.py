@@ -176,3 +176,19 @@ def test_the_map_at_a_speed_has_the_response_layers(mapped: Path) -> None:
         v = ds.read(names.index("v_max") + 1, masked=True)
     assert np.array_equal(np.ma.getmaskarray(acc), np.ma.getmaskarray(v))
     assert (acc.compressed() > 0).all()
+
+
+def test_the_maps_95_percent_speed_is_at_most_its_v_max_and_below_it_where_spread(
+    mapped: Path,
+) -> None:
+    """v_max_95 from each cell's sigma_R and sigma_w: never above v_max, below it where the
+    cell's R or w has a spread and v_max is under the top speed."""
+    with rasterio.open(mapped / "map.tif") as ds:
+        names = list(ds.descriptions)
+        v = ds.read(names.index("v_max") + 1, masked=True)
+        sure = ds.read(names.index("v_max_95") + 1, masked=True)
+        spread = ds.read(names.index("sigma_w") + 1, masked=True)
+    assert np.array_equal(np.ma.getmaskarray(v), np.ma.getmaskarray(sure))
+    assert (sure.compressed() <= v.compressed() + 1e-6).all()
+    slowed = (~np.ma.getmaskarray(spread)) & (spread.filled(0) > 0) & (v.filled(0) > 0.01)
+    assert slowed.any() and (sure[slowed] < v[slowed]).mean() > 0.9
