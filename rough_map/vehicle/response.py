@@ -12,16 +12,20 @@ and damper ``c_s`` over the wheel ``m_u`` on its tyre ``k_t``::
 Three responses: the body's vertical acceleration weighted by ISO 2631-1 ``Wk``
 (:func:`wk_weighting`, the standard's band-limiting, acceleration-velocity and upward-step
 filters), the suspension travel ``z_s - z_u`` and the dynamic tyre load ``k_t (z_r - z_u)``
-over the static load.
+over the static load. With a wheelbase ``L`` and the acceleration taken at the centre
+(:attr:`~rough_map.vehicle.spec.Vehicle.acceleration_at`), the body's acceleration is the
+mean of the front corner's and the rear's, which sees the same profile ``L / v`` later:
+``|(1 + e^(-i ω L / v)) / 2|² = cos²(Ω L / 2)`` times the corner's, the wheelbase filter
+(travel and tyre load stay those of a corner).
 
 The spectrum is the measured fit: ``R Ω^w`` over the band the patch measured, extended as the
 same power law down to :data:`MIN_WAVENUMBER` (0.05 rad/m, a wavelength of 126 m) and not
 beyond the band's short end, which the tyre's contact patch filters out anyway. Since
 ``G`` is a power law, ``σ²(v) = R v^(-w-1) ∫ |H(iω)|² ω^w dω`` over ``[v Ω_min, v Ω_max]``:
 :class:`SpeedTable` tabulates the integral once per vehicle over waviness and speed, so a
-whole map's cells get their speed in one vectorised pass. Assumptions: linear, one wheel
-(each corner alike, the wheels uncorrelated: no pitch or roll), Gaussian ground, the power
-law holding beyond the band.
+whole map's cells get their speed in one vectorised pass. Assumptions: linear, each
+corner alike, one track (left and right wheels uncorrelated: no roll; with a wheelbase, no
+pitch coupling between the axles), Gaussian ground, the power law holding beyond the band.
 """
 
 from __future__ import annotations
@@ -41,6 +45,7 @@ __all__ = [
     "Response",
     "SpeedTable",
     "quarter_car_transfer",
+    "wheelbase_filter",
     "wk_polynomials",
     "wk_sections",
     "wk_weighting",
@@ -106,6 +111,17 @@ def quarter_car_transfer(
     zs = kt * link / den
     zu = kt * body / den
     return s**2 * zs, zs - zu, kt * (1 - zu)
+
+
+def wheelbase_filter(
+    omega: NDArray[np.float64], step: NDArray[np.float64], wheelbase: float
+) -> NDArray[np.float64]:
+    """``cos²(Ω L / 2)`` (``Ω`` in rad/m, ``L`` the wheelbase in m) averaged over each
+    step of the integral, ``Ω`` times ``exp(±step / 2)``: where the steps are longer than
+    its period (short waves) it is its mean, 1/2, not an aliased sample."""
+    x = omega * wheelbase / 2
+    width = omega * wheelbase * np.sinh(np.asarray(step) / 2)  # the step's extent in x
+    return np.asarray(0.5 + 0.5 * np.cos(2 * x) * np.sinc(width / np.pi), dtype=np.float64)
 
 
 @dataclass(frozen=True)
@@ -175,6 +191,8 @@ class SpeedTable:
         )  # (3, speeds, n)
         powers = np.exp((_W_NODES[:, None] + 1) * ln_omega[None, :])  # (nodes, n)
         step = np.gradient(ln_omega)
+        if vehicle.acceleration_at == "centre" and vehicle.wheelbase is not None:
+            gains[0] *= wheelbase_filter(omega, step, vehicle.wheelbase)[None, :]
         #: variance per unit R: (3 responses, w nodes, speeds)
         self._table = np.einsum("ksn,wn,n->kws", gains, powers, step)
 

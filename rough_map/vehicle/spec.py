@@ -1,7 +1,8 @@
 """Vehicle files: a quarter-car and the limits that matter to it, as YAML (or JSON).
 
 A vehicle file names the model (a quarter-car: one corner's sprung and unsprung mass, its
-suspension spring and damper, its tyre's vertical stiffness) and the limits a drive must
+suspension spring and damper, its tyre's vertical stiffness; optionally a wheelbase, the rear
+corner following the front in its track) and the limits a drive must
 keep: the ISO 2631-1 frequency-weighted rms vertical acceleration of the body (comfort,
 payload or sensors), the rms dynamic tyre load over the static load (road holding) and a top
 speed. It is validated like every other config (:func:`rough_map.config.load_model`): a bad
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -112,7 +114,20 @@ class Vehicle(_Model):
         None,
         gt=0,
         le=50,
-        description="Wheelbase in m (informative: the model is one corner, each wheel alike).",
+        description=(
+            "Wheelbase in m: front and rear wheels run in one track, the rear wheelbase/v "
+            "later. It enters the weighted acceleration taken at the centre "
+            "(acceleration_at)."
+        ),
+    )
+    acceleration_at: Literal["wheel", "centre"] = Field(
+        "wheel",
+        description=(
+            "Where the weighted acceleration is taken: 'wheel', over one wheel (the "
+            "quarter-car), or 'centre', midway along the wheelbase, the mean of the front "
+            "and rear corners' body accelerations (the bounce of a body whose pitch inertia "
+            "decouples its axles, dynamic index 1); 'centre' needs the wheelbase."
+        ),
     )
     limits: Limits
 
@@ -120,6 +135,8 @@ class Vehicle(_Model):
     def _some_limit(self) -> Vehicle:
         if self.limits.weighted_acceleration is None and self.limits.dynamic_load_ratio is None:
             raise ValueError("limits: give weighted_acceleration and/or dynamic_load_ratio")
+        if self.acceleration_at == "centre" and self.wheelbase is None:
+            raise ValueError("acceleration_at: 'centre' needs the wheelbase (m)")
         return self
 
 
