@@ -29,8 +29,9 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -38,6 +39,12 @@ from threadpoolctl import threadpool_limits
 
 from rough_map._cluster import cluster_client
 from rough_map.errors import InputError, PatchError
+from rough_map.features.frames import (
+    check_jobs,
+    sigint_deferred,
+    start_executor,
+    stop_resource_tracker,
+)
 from rough_map.io.raster import HeightRaster
 from rough_map.iso8608 import CLASSES
 from rough_map.map.grid import GridMap
@@ -77,7 +84,7 @@ _ACROSS = (
     ("anisotropy", "1", "ln(R / R_across)"),
 )
 #: Windows measured in one call of the estimator.
-_BATCH = 64
+_BATCH = 256
 #: Raster rows a job reads at once (about: whole bands of windows).
 _STRIP_ROWS = 512
 
@@ -200,7 +207,6 @@ def roughness_raster(
     FileFormatError
         The raster cannot be read.
     """
-    from joblib import Parallel, delayed
     from tqdm import tqdm
 
     spec = spec or SurveySpec()
@@ -232,9 +238,7 @@ def roughness_raster(
     elif n_jobs == 1:
         results = (_strip(raster, spec, b, k, size, step, n_cols) for b, k in strips)
     else:
-        results = Parallel(n_jobs=n_jobs, return_as="generator")(
-            delayed(_strip)(raster, spec, b, k, size, step, n_cols) for b, k in strips
-        )
+        results = _in_processes(raster, spec, strips, (size, step, n_cols), n_jobs)
     with tqdm(total=n_rows * n_cols, desc="windows", unit="win", disable=not progress) as bar:
         i = 0
         for strip in results:
@@ -259,6 +263,55 @@ def roughness_raster(
     )
     grid.add_layer("valid", units="1", description="1: the window was read", data=valid)
     return grid
+
+
+def _in_processes(
+    raster: HeightRaster,
+    spec: SurveySpec,
+    strips: list[tuple[int, int]],
+    shape: tuple[int, int, int],
+    n_jobs: int,
+) -> Iterator[list[dict[str, NDArray[np.float64]]]]:
+    """The strips measured on this process and ``n_jobs - 1`` loky workers, in order.
+
+    The workers keep two strips each queued; while the next strip due is still on a
+    worker, this process measures later ones itself (their readings are small: a few
+    hundred kB a strip), so that it works rather than waits, also while the workers start
+    (they import rough_map for a second or more)."""
+    size, step, n_cols = shape
+    workers = check_jobs(n_jobs)
+    if workers == 1 or len(strips) < 2:
+        yield from (_strip(raster, spec, b, k, size, step, n_cols) for b, k in strips)
+        return
+    ahead = 2 * (workers - 1)
+    futures: dict[int, Any] = {}
+    nxt = 0
+
+    def submit(executor: Any) -> Iterable[Any]:
+        nonlocal nxt
+        while len(futures) < ahead and nxt < len(strips):
+            futures[nxt] = executor.submit(_strip, raster, spec, *strips[nxt], *shape)
+            nxt += 1
+        return futures.values()
+
+    executor = start_executor(workers - 1, submit)
+    mine: dict[int, list[dict[str, NDArray[np.float64]]]] = {}  # done here, ahead of turn
+    try:
+        for k in range(len(strips)):
+            while k not in mine:
+                submit(executor)
+                future = futures.get(k)
+                if future is None or future.done() or nxt >= len(strips):
+                    break
+                mine[nxt] = _strip(raster, spec, *strips[nxt], *shape)
+                nxt += 1
+            yield mine.pop(k) if k in mine else futures.pop(k).result()
+    finally:
+        for future in futures.values():
+            future.cancel()
+        with sigint_deferred():
+            executor.shutdown(wait=True)
+            stop_resource_tracker()
 
 
 def _on_cluster(

@@ -493,7 +493,7 @@ def start_executor(processes: int, first: Callable[[Any], Iterable[Any]]) -> Any
         if executor is not None:
             with sigint_deferred():
                 executor.shutdown(wait=True)
-                _stop_resource_tracker()
+                stop_resource_tracker()
         raise
     return executor
 
@@ -703,10 +703,10 @@ class FrameStream:
         with sigint_deferred():
             self._executor.shutdown(wait=True)
             self._executor = None
-            _stop_resource_tracker()
+            stop_resource_tracker()
 
 
-def _stop_resource_tracker() -> None:
+def stop_resource_tracker() -> None:
     """Stop loky's resource-tracker process once no executor is left (POSIX)."""
     from joblib.externals.loky.backend import resource_tracker
 
