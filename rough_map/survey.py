@@ -83,8 +83,9 @@ _ACROSS = (
     ("w_across", "1", "w of the profiles across the chosen direction"),
     ("anisotropy", "1", "ln(R / R_across)"),
 )
-#: Windows measured in one call of the estimator.
-_BATCH = 256
+#: Heights measured in one call of the estimator: 256 windows of 112 x 112 cells (25 MB),
+#: fewer of larger windows. Batches of 64 ran the estimator 15 % slower.
+_BATCH_CELLS = 256 * 112 * 112
 #: Raster rows a job reads at once (about: whole bands of windows).
 _STRIP_ROWS = 512
 
@@ -366,8 +367,9 @@ def _band(
     band = {n: np.full(n_cols, np.nan) for n in (*names, "iso_class")}
     band["valid"] = np.zeros(n_cols)
     along_rows = spec.direction == "rows"
-    for start in range(0, n_cols, _BATCH):
-        cols = range(start, min(start + _BATCH, n_cols))
+    batch = max(1, _BATCH_CELLS // (size * size))
+    for start in range(0, n_cols, batch):
+        cols = range(start, min(start + batch, n_cols))
         stack = np.stack([heights[:, j * step : j * step + size] for j in cols])
         if not along_rows:
             stack = stack.transpose(0, 2, 1)
