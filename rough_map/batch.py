@@ -32,7 +32,7 @@ import shutil
 import tempfile
 import uuid
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -50,10 +50,18 @@ from rough_map._files import (
 from rough_map.classify import sha256_file
 from rough_map.errors import InputError
 from rough_map.export import export_map
+from rough_map.export.costmap import CostmapSettings, write_costmap
 from rough_map.io.traverse import find_traverse_file, load_traverse
 from rough_map.map.tiles import TiledMap
 from rough_map.resources import model_base
-from rough_map.workflow import AnalysisOptions, analyse_model_file, summary, write_outputs
+from rough_map.vehicle import SpeedTable, Vehicle
+from rough_map.workflow import (
+    AnalysisOptions,
+    add_speed_layers,
+    analyse_model_file,
+    summary,
+    write_outputs,
+)
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +69,7 @@ __all__ = ["BatchJob", "BatchResult", "fuse_states", "map_traverse_files", "run_
 
 #: Names the fused map writes at the top of the batch's folder (glob patterns): an old
 #: file of these names that a run does not write again is dropped.
-FUSED_OUTPUTS = ("map.tif", "map_*.tif", "map_*.png", "batch.json")
+FUSED_OUTPUTS = ("map.tif", "map_*.tif", "map_*.png", "map_costmap.*", "batch.json")
 
 #: Prefix of a worker's temporary folder, followed by its process id.
 _BATCH_PREFIX = "rough_map_batch_"
@@ -92,6 +100,12 @@ class BatchJob:
         Processes for the frames of this traverse.
     allow_outside : tuple of str
         Folders outside the traverse folder its files may be in (``--allow-outside``).
+    vehicle : Vehicle, optional
+        Speed advice for this vehicle (``v_max`` columns and layers, the costmap).
+    speed : float, optional
+        With ``vehicle``: the responses at this speed, m/s.
+    costmap : CostmapSettings, optional
+        The costmap's settings (default :class:`~rough_map.export.costmap.CostmapSettings`).
     """
 
     traverse: str
@@ -102,6 +116,9 @@ class BatchJob:
     png: bool
     n_jobs: int = 1
     allow_outside: tuple[str, ...] = ()
+    vehicle: Vehicle | None = None
+    speed: float | None = None
+    costmap: CostmapSettings | None = None
 
 
 @dataclass
@@ -140,6 +157,17 @@ def fingerprint(job: BatchJob) -> dict[str, Any]:
         "near_far": job.near_far,
         "png": job.png,
         "rough_map_version": __version__,
+        # only with a vehicle, so that a batch without one keeps its fingerprints
+        **(
+            {
+                "vehicle": job.vehicle.model_dump(mode="json"),
+                "speed_m_s": job.speed,
+                # as batch.json holds it (tuples as lists), to compare with the saved one
+                "costmap": json.loads(json.dumps(asdict(job.costmap or CostmapSettings()))),
+            }
+            if job.vehicle is not None
+            else {}
+        ),
     }
 
 
@@ -154,9 +182,15 @@ def map_traverse_files(job: BatchJob) -> dict[str, bytes]:
         result = analyse_model_file(
             load_traverse(job.traverse, allow_outside=job.allow_outside),
             _model_file(job.model),
-            AnalysisOptions(resolution=job.resolution, near_far=job.near_far, n_jobs=job.n_jobs),
+            AnalysisOptions(
+                resolution=job.resolution,
+                near_far=job.near_far,
+                n_jobs=job.n_jobs,
+                vehicle=job.vehicle,
+                speed=job.speed,
+            ),
         )
-        write_outputs(result, tmp, png=job.png, as_set=False)
+        write_outputs(result, tmp, png=job.png, as_set=False, costmap=job.costmap)
         if result.mapper is not None:
             result.mapper.close()  # its tiles on disk
         marker = {
@@ -246,6 +280,9 @@ def run_batch(
     tls: tuple[str, str, str] | None = None,
     progress: bool = False,
     allow_outside: Sequence[PathLike] = (),
+    vehicle: Vehicle | None = None,
+    speed: float | None = None,
+    costmap: CostmapSettings | None = None,
 ) -> BatchResult:
     """Map each traverse into ``out_dir/<name>/`` and fuse them all into ``out_dir``.
 
@@ -277,6 +314,14 @@ def run_batch(
     allow_outside : sequence of path
         Folders outside the traverse folders whose files the traverses may name
         (:func:`rough_map.io.traverse.load_traverse`); default none.
+    vehicle : Vehicle, optional
+        Speed advice for this vehicle, as ``rough-map map --vehicle`` gives it: in each
+        traverse's outputs, and ``v_max`` (with ``v_max_95`` and the responses at ``speed``)
+        and the costmap from the fused map's R and w.
+    speed : float, optional
+        With ``vehicle``: the responses at this speed, m/s.
+    costmap : CostmapSettings, optional
+        The costmaps' settings.
 
     Returns
     -------
@@ -288,7 +333,12 @@ def run_batch(
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise write_error(out, exc) from None
-    jobs = _jobs(traverses, model, resolution, near_far, png)
+    if vehicle is None and speed is not None:
+        raise InputError("speed gives the responses of a vehicle: name one")
+    jobs = [
+        replace(j, vehicle=vehicle, speed=speed, costmap=costmap)
+        for j in _jobs(traverses, model, resolution, near_far, png)
+    ]
     if allow_outside:
         allowed = tuple(str(Path(p).resolve()) for p in allow_outside)
         jobs = [replace(j, allow_outside=allowed) for j in jobs]
@@ -303,7 +353,11 @@ def run_batch(
     summaries = {j.name: json.loads((out / j.name / MARKER).read_text())["summary"] for j in jobs}
     fused = fuse_states([out / j.name / "map_state.npz" for j in jobs])
     fused.attrs["traverses"] = [j.name for j in jobs]
-    outputs = _write_fused(fused, out, png, [j.name for j in jobs])
+    drive = None
+    if vehicle is not None:
+        add_speed_layers(fused, SpeedTable(vehicle, _band(summaries)), speed)
+        drive = (vehicle.limits.top_speed, costmap)
+    outputs = _write_fused(fused, out, png, [j.name for j in jobs], drive)
     return BatchResult([j.name for j in todo], skipped, outputs, summaries)
 
 
@@ -372,10 +426,30 @@ def _on_cluster(
             bar.update()
 
 
-def _write_fused(fused: Any, out: Path, png: bool, names: list[str]) -> dict[str, Path]:
+def _band(summaries: dict[str, dict[str, Any]]) -> tuple[float, float]:
+    """The spectrum band (rad/m) the fused map's speed advice integrates over: the one
+    the traverses share, else the narrowest of theirs (logged)."""
+    bands = {tuple(s["band_rad_m"]) for s in summaries.values() if s.get("band_rad_m")}
+    if not bands:
+        raise InputError("no traverse of the batch has a spectrum band to drive over")
+    if len(bands) > 1:
+        log.info("the traverses were measured over different bands: the fused map's v_max "
+                 "integrates over the narrowest, their overlap")  # fmt: skip
+    lo, hi = max(b[0] for b in bands), min(b[1] for b in bands)
+    return (lo, hi) if lo < hi else sorted(bands)[0]
+
+
+def _write_fused(
+    fused: Any,
+    out: Path,
+    png: bool,
+    names: list[str],
+    drive: tuple[float, CostmapSettings | None] | None = None,
+) -> dict[str, Path]:
     """The fused map's files at the top of ``out``, with ``batch.json``: the whole folder
     staged and swapped in as a set (:func:`rough_map._files.output_set`), the
-    traverses' folders (already in place) and the user's files carried over."""
+    traverses' folders (already in place) and the user's files carried over. With
+    ``drive`` (the vehicle's top speed in m/s and the costmap's settings), the costmap."""
     marker = {
         "traverses": names,
         "map_shape": list(fused.shape),
@@ -384,6 +458,8 @@ def _write_fused(fused: Any, out: Path, png: bool, names: list[str]) -> dict[str
     }
     with output_set(out, owned=FUSED_OUTPUTS) as stage:
         written = export_map(fused, stage, name="map", png=png)
+        if drive is not None:
+            written.update(write_costmap(fused, stage, drive[0], settings=drive[1]))
         with atomic_output(stage / MARKER) as t:
             t.write_text(json.dumps(marker, indent=2, sort_keys=True) + "\n")
     outputs = {key: out / path.name for key, path in written.items()}

@@ -89,6 +89,7 @@ __all__ = [
     "ROUGHNESS_SOURCES",
     "AnalysisOptions",
     "TraverseAnalysis",
+    "add_speed_layers",
     "analyse",
     "analyse_model_file",
     "coverage_report",
@@ -296,7 +297,7 @@ def analyse(
     )
     grid.attrs["traverse"] = traverse.name
     if opt.vehicle is not None:
-        _speed_layers(grid, speed_table(features, opt.vehicle), opt.speed)
+        add_speed_layers(grid, speed_table(features, opt.vehicle), opt.speed)
     log_fused(len(features), np.asarray(features.valid, dtype=bool), grid, resolution)
     result = TraverseAnalysis(traverse, features, prediction, grid, model, extraction)
     result.mapper = mapper
@@ -317,7 +318,7 @@ def analyse(
     return result
 
 
-def _speed_layers(grid: GridMap, speeds: SpeedTable, speed: float | None) -> None:
+def add_speed_layers(grid: GridMap, speeds: SpeedTable, speed: float | None) -> None:
     """The map's speed advice from each cell's fused R and w: ``v_max`` (m/s), the speed
     ``v_max_95`` that holds with 95 % confidence from the cell's spread of R and w (its
     ``sigma_R`` and ``sigma_w``: the frames' standard errors and their scatter) and, at
@@ -626,6 +627,9 @@ def summary(result: TraverseAnalysis, resolution: float) -> dict[str, Any]:
         "valid": int(result.features.valid.sum()),
         "map_shape": list(result.map.shape),
         "resolution_m": resolution,
+        "band_rad_m": [float(result.features.omega[0]), float(result.features.omega[-1])]
+        if result.features.omega.size > 1
+        else None,
         **result.far_report,
         **result.truth_accuracy(),
     }

@@ -183,3 +183,40 @@ def test_the_readme_scheduler_listens_only_where_it_is_told(tmp_path) -> None:
     finally:
         proc.terminate()
         proc.wait(timeout=30)
+
+
+def test_a_batch_for_a_vehicle_has_the_fused_speed_advice_and_costmap(
+    serial, small_traverse, second_traverse, tmp_path
+) -> None:
+    """--vehicle as map takes it: each traverse's outputs and the fused map get v_max (from
+    the fused R and w), v_max_95 and the costmap; the same vehicle resumes, another vehicle
+    or none maps again, and without one the costmap is gone."""
+    import rasterio
+
+    from rough_map.vehicle import SpeedTable, load_vehicle
+
+    out = tmp_path / "drive"
+    shutil.copytree(serial, out)
+    args = ["-q", "batch", str(small_traverse), str(second_traverse), "--out", str(out)]
+    assert main([*args, "--vehicle", "tractor", "--no-png"]) == 0
+    for folder in (out, out / "sim-mixed-seed1"):
+        assert (folder / "map_costmap.pgm").is_file() and (folder / "map_costmap.yaml").is_file()
+    with rasterio.open(out / "map.tif") as src:
+        names = list(src.descriptions)
+        layer = {n: src.read(names.index(n) + 1) for n in ("R", "w", "v_max", "v_max_95")}
+    marker = json.loads((out / "sim-mixed-seed1" / "batch.json").read_text())
+    band = tuple(marker["summary"]["band_rad_m"])
+    expected = SpeedTable(load_vehicle("tractor"), band).v_max(layer["R"], layer["w"])
+    assert np.allclose(layer["v_max"], expected, equal_nan=True, rtol=1e-5)
+    seen = np.isfinite(layer["v_max"])
+    assert seen.any() and (layer["v_max_95"][seen] <= layer["v_max"][seen] + 1e-6).all()
+    again = batch_mod.run_batch(
+        [small_traverse, second_traverse], out, png=False, vehicle=load_vehicle("tractor")
+    )
+    assert again.mapped == []
+    car = batch_mod.run_batch([small_traverse], out, png=False, vehicle=load_vehicle("car"))
+    assert car.mapped == ["sim-mixed-seed1"]
+    assert main([*args, "--no-png"]) == 0
+    assert not (out / "map_costmap.pgm").exists()
+    with pytest.raises(InputError, match="speed gives the responses of a vehicle"):
+        batch_mod.run_batch([small_traverse], out, speed=2.0)
