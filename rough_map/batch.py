@@ -428,13 +428,14 @@ def _on_cluster(
 
 def _band(summaries: dict[str, dict[str, Any]]) -> tuple[float, float]:
     """The spectrum band (rad/m) the fused map's speed advice integrates over: the one
-    the traverses share, else the narrowest of theirs (logged)."""
+    the traverses share, else their overlap (logged), or the lowest band where they do not
+    overlap."""
     bands = {tuple(s["band_rad_m"]) for s in summaries.values() if s.get("band_rad_m")}
     if not bands:
         raise InputError("no traverse of the batch has a spectrum band to drive over")
     if len(bands) > 1:
         log.info("the traverses were measured over different bands: the fused map's v_max "
-                 "integrates over the narrowest, their overlap")  # fmt: skip
+                 "integrates over their overlap")  # fmt: skip
     lo, hi = max(b[0] for b in bands), min(b[1] for b in bands)
     return (lo, hi) if lo < hi else sorted(bands)[0]
 
