@@ -29,6 +29,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy import ndimage
@@ -244,3 +246,28 @@ def bilinear(grid: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     (:data:`GRID_STEP`), by bilinear interpolation between its nodes."""
     coords = np.stack([np.asarray(y, float), np.asarray(x, float)]) / GRID_STEP
     return ndimage.map_coordinates(grid, coords, order=1, mode="nearest")
+
+
+def write_height_geotiff(
+    path: Path, z: np.ndarray, crs: str | None, transform: Any, dtype: str = "float32"
+) -> Path:
+    """``z`` (m, NaN missing) as a one-band GeoTIFF of ``dtype`` with nodata -9999, in
+    ``crs`` (None: none) at ``transform`` (an affine.Affine): any raster a test needs,
+    rotated, in degrees or in feet included."""
+    import rasterio
+
+    nodata = -9999.0
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        width=z.shape[1],
+        height=z.shape[0],
+        count=1,
+        dtype=dtype,
+        crs=crs,
+        transform=transform,
+        nodata=nodata,
+    ) as ds:
+        ds.write(np.where(np.isfinite(z), z, nodata).astype(dtype), 1)
+    return path

@@ -18,6 +18,7 @@ import rasterio
 from affine import Affine
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from surfaces import write_height_geotiff
 
 from rough_map.errors import FileFormatError, InputError
 from rough_map.features import read_features, traverse_features
@@ -37,20 +38,7 @@ GROUND = 250.0  # m above the datum, as a real DEM's heights are
 
 
 def _dem(path: Path, z: np.ndarray, crs: str = "EPSG:32633", cell: float = B) -> Path:
-    with rasterio.open(
-        path,
-        "w",
-        driver="GTiff",
-        width=z.shape[1],
-        height=z.shape[0],
-        count=1,
-        dtype="float64",
-        crs=crs,
-        transform=Affine(cell, 0.0, X0, 0.0, -cell, Y0),
-        nodata=-9999.0,
-    ) as ds:
-        ds.write(np.where(np.isfinite(z), z, -9999.0), 1)
-    return path
+    return write_height_geotiff(path, z, crs, Affine(cell, 0.0, X0, 0.0, -cell, Y0), "float64")
 
 
 @pytest.fixture(scope="module")

@@ -17,6 +17,7 @@ import rasterio
 from affine import Affine
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from surfaces import write_height_geotiff
 
 from rough_map.config import Crs
 from rough_map.errors import FileFormatError, InputError
@@ -42,21 +43,7 @@ def _north_up(west: float, north: float, cell: float) -> Affine:
 def _geotiff(
     path: Path, z: np.ndarray, *, crs: str | None = "EPSG:32633", transform: Affine | None = None
 ) -> Path:
-    nodata = -9999.0
-    with rasterio.open(
-        path,
-        "w",
-        driver="GTiff",
-        width=z.shape[1],
-        height=z.shape[0],
-        count=1,
-        dtype="float32",
-        crs=crs,
-        transform=transform or _north_up(X0, Y0, B),
-        nodata=nodata,
-    ) as ds:
-        ds.write(np.where(np.isfinite(z), z, nodata).astype("float32"), 1)
-    return path
+    return write_height_geotiff(path, z, crs, transform or _north_up(X0, Y0, B))
 
 
 @pytest.fixture(scope="module")
